@@ -1,0 +1,21 @@
+# avatarlab workflow: preprocess -> pretrain -> finetune -> evaluate -> report.
+# `snakemake --cores 2` runs the main job (tiny scale, embedded default data); `--config scale=smoke` for seconds.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "workflow/config.yaml"
+
+
+report: "workflow/report/workflow.rst"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/headmodel.smk"
+
+
+rule all:
+    input:
+        get_final_output(),
+    default_target: True

@@ -1,0 +1,39 @@
+# The head model itself: a look at it, and a check that face tooling sees it as a face.
+
+
+rule render_demo:
+    input:
+        conf=conf_files(),
+        code=source_files("headmodel", "render"),
+    output:
+        grid=report(f"{RESULTS}/headmodel/render_grid.png", caption="../report/render_grid.rst",
+                    category="Head model"),
+    log:
+        f"{LOGS}/headmodel/render_demo.log",
+    params:
+        hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/render_demo"),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.headmodel.render_demo {params.hydra} threads={threads} 'demo.out={output.grid}' > {log} 2>&1"
+
+
+rule dlib_check:
+    input:
+        conf=conf_files(),
+        code=source_files("headmodel", "render", "preprocess"),
+    output:
+        report=f"{RESULTS}/headmodel/dlib_check.json",
+        overlay=report(f"{RESULTS}/headmodel/dlib_check_overlay.png", caption="../report/dlib_check.rst",
+                       category="Head model"),
+    log:
+        f"{LOGS}/headmodel/dlib_check.log",
+    params:
+        hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/dlib_check"),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.headmodel.dlib_check {params.hydra} threads={threads} 'dlib_check.out={output.report}'"
+        " 'dlib_check.overlay={output.overlay}' > {log} 2>&1"
