@@ -1,11 +1,14 @@
 # avatarlab workflow: preprocess -> pretrain -> finetune -> evaluate -> report.
 # `snakemake --cores 2` runs the main job (tiny scale, embedded default data); `--config scale=smoke` for seconds.
+from pathlib import Path
+
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "workflow/config.yaml"
+# beside this Snakefile, so `--directory elsewhere` (a scratch or cluster work dir) still finds it
+configfile: str(Path(workflow.basedir) / "workflow" / "config.yaml")
 
 
 report: "workflow/report/workflow.rst"

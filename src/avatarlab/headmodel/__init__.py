@@ -26,7 +26,8 @@ def load_head_model_data(cfg) -> HeadModelData:
         if not cfg.get("model_path") or not cfg.get("landmark_path"):
             raise HeadModelFileError("head_model=flame2020 needs head_model.model_path (generic_model.pkl) and "
                                      "head_model.landmark_path (landmark_embedding.npy)")
-        data = load_flame2020(Path(cfg["model_path"]), Path(cfg["landmark_path"]), cfg.get("texture_path"))
+        data = load_flame2020(Path(cfg["model_path"]), Path(cfg["landmark_path"]), cfg.get("texture_path"),
+                              int(cfg.get("shape_components_in_file", 300)))
         log.info("head model: FLAME 2020 from %s (%d vertices)", cfg["model_path"], data.v_template.shape[0])
         return data
     raise ValueError(f"head_model.kind must be 'procedural' or 'flame2020', got {kind!r}")

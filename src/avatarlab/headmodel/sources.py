@@ -92,6 +92,8 @@ class RestrictedUnpickler(pickle.Unpickler):
             return _reconstructor
         if (module, name) in {("__builtin__", "object"), ("builtins", "object")}:
             return object
+        if (module, name) == ("_codecs", "encode"):  # how bytes are pickled at protocols 0-2: a pure function
+            return super().find_class(module, name)
         raise pickle.UnpicklingError(f"refusing to load {module}.{name}")
 
 
@@ -211,8 +213,8 @@ def flat_grey_albedo(n_vertices: int) -> VertexAlbedo:
     return VertexAlbedo(mean=np.full((n_vertices, 3), 0.6, np.float32), basis=np.zeros((n_vertices, 3, 1), np.float32))
 
 
-def load_flame2020(model_path, landmark_path, texture_path=None) -> HeadModelData:
-    arrays = load_flame_pickle(model_path)
+def load_flame2020(model_path, landmark_path, texture_path=None, n_shape_total: int = 300) -> HeadModelData:
+    arrays = load_flame_pickle(model_path, n_shape_total)
     idx, bary = load_landmark_embedding(landmark_path)
     if texture_path:
         albedo = load_uv_texture_space(texture_path, arrays["faces"].shape[0])

@@ -1,0 +1,48 @@
+import itertools
+
+import pytest
+from omegaconf import OmegaConf
+
+from avatarlab.cli import COMMANDS, main as cli_main
+from avatarlab.headmodel import HeadModelFileError, load_head_model_data
+from conftest import CONF_DIR, compose_config
+
+SCALES = sorted(p.stem for p in (CONF_DIR / "scale").glob("*.yaml"))
+HEAD_MODELS = sorted(p.stem for p in (CONF_DIR / "head_model").glob("*.yaml"))
+
+
+def test_groups_exist():
+    assert SCALES == ["paper", "smoke", "tiny"]
+    assert HEAD_MODELS == ["flame2020", "procedural"]
+
+
+@pytest.mark.parametrize("scale,head_model", list(itertools.product(SCALES, HEAD_MODELS)))
+def test_every_scale_and_head_model_composes(scale, head_model):
+    cfg = compose_config([f"scale={scale}", f"head_model={head_model}"])
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    assert resolved["scale"]["name"] == scale
+    assert resolved["head_model"]["kind"] == head_model
+    assert resolved["demo"]["out"].endswith(f"{scale}/headmodel/render_grid.png")
+    assert resolved["demo"]["image_size"] == cfg.scale.demo_image_size
+
+
+def test_scales_grow_and_nothing_is_hard_coded():
+    sizes = {s: compose_config([f"scale={s}"]).scale for s in SCALES}
+    assert sizes["smoke"].demo_image_size < sizes["tiny"].demo_image_size <= sizes["paper"].demo_image_size
+    assert sizes["smoke"].dlib_check_renders < sizes["tiny"].dlib_check_renders < sizes["paper"].dlib_check_renders
+
+
+def test_flame2020_without_files_fails_with_a_clear_message():
+    cfg = compose_config(["head_model=flame2020"])
+    with pytest.raises(HeadModelFileError, match="head_model.model_path"):
+        load_head_model_data(cfg.head_model)
+    cfg = compose_config(["head_model=flame2020", "head_model.model_path=/nonexistent/generic_model.pkl",
+                          "head_model.landmark_path=/nonexistent/landmark_embedding.npy"])
+    with pytest.raises(HeadModelFileError, match="/nonexistent/generic_model.pkl: FLAME model file not found"):
+        load_head_model_data(cfg.head_model)
+
+
+def test_cli_lists_commands(capsys):
+    assert cli_main([]) == 2
+    out = capsys.readouterr().out
+    assert all(name in out for name in COMMANDS)

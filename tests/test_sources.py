@@ -1,0 +1,117 @@
+import pickle
+import sys
+import types
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+
+from avatarlab.headmodel import HeadModel, HeadModelFileError, ProceduralSpec, load_head_model_data
+from avatarlab.headmodel.procedural import build_procedural_head
+from avatarlab.headmodel.sources import load_flame_pickle, load_landmark_embedding
+from avatarlab.render import orbit_camera
+from avatarlab.render.head_renderer import HeadRenderer
+
+
+@pytest.fixture(scope="module")
+def small_head():
+    return build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3))
+
+
+class _FakeCh:
+    """Pickles like chumpy.ch.Ch (its array under 'x' in the instance dict)."""
+
+    def __init__(self, x):
+        self.x = x
+
+
+def write_flame_layout_pickle(path, data, protocol=2):
+    module = types.ModuleType("chumpy.ch")
+    _FakeCh.__module__, _FakeCh.__qualname__ = "chumpy.ch", "Ch"
+    module.Ch = _FakeCh
+    sys.modules["chumpy"], sys.modules["chumpy.ch"] = types.ModuleType("chumpy"), module
+    try:
+        payload = {
+            "f": data.faces.astype(np.uint32), "v_template": data.v_template.astype(np.float64),
+            "shapedirs": _FakeCh(np.concatenate([data.shapedirs, data.exprdirs], -1).astype(np.float64)),
+            "posedirs": data.posedirs.astype(np.float64),
+            "J_regressor": scipy.sparse.csc_matrix(data.J_regressor.astype(np.float64)),
+            "kintree_table": np.array([[4294967295, 0, 1, 1, 1], [0, 1, 2, 3, 4]], dtype=np.int64),
+            "weights": data.lbs_weights.astype(np.float64), "bs_style": "lbs", "bs_type": "lrotmin",
+        }
+        path.write_bytes(pickle.dumps(payload, protocol=protocol))
+    finally:
+        del sys.modules["chumpy"], sys.modules["chumpy.ch"]
+
+
+@pytest.mark.parametrize("protocol", [0, 2])
+def test_flame_pickle_round_trip_without_chumpy(tmp_path, small_head, protocol):
+    path = tmp_path / "generic_model.pkl"
+    write_flame_layout_pickle(path, small_head, protocol)
+    assert "chumpy" not in sys.modules
+    arrays = load_flame_pickle(path, n_shape_total=small_head.shapedirs.shape[-1])
+    np.testing.assert_allclose(arrays["v_template"], small_head.v_template)
+    np.testing.assert_allclose(arrays["shapedirs"], small_head.shapedirs)
+    np.testing.assert_allclose(arrays["exprdirs"], small_head.exprdirs)
+    np.testing.assert_allclose(arrays["J_regressor"], small_head.J_regressor)
+    assert arrays["parents"].tolist() == [-1, 0, 1, 1, 1]
+    np.testing.assert_array_equal(arrays["faces"], small_head.faces)
+
+
+def test_flame2020_source_runs_through_the_model(tmp_path, small_head):
+    write_flame_layout_pickle(tmp_path / "generic_model.pkl", small_head)
+    np.save(tmp_path / "landmark_embedding.npy", {"full_lmk_faces_idx": small_head.lmk_faces_idx[None],
+                                                   "full_lmk_bary_coords": small_head.lmk_bary_coords[None],
+                                                   "static_lmk_faces_idx": small_head.lmk_faces_idx[17:]},
+            allow_pickle=True)
+    # UV texture space in FLAME_texture.npz layout: left half of the map red, right half blue (0..255)
+    tex = np.zeros((32, 32, 3), np.float32)
+    tex[:, :16, 0], tex[:, 16:, 2] = 255, 255
+    uv = (small_head.v_template[:, :2] - small_head.v_template[:, :2].min(0)) / np.ptp(small_head.v_template[:, :2], 0)
+    np.savez(tmp_path / "FLAME_texture.npz", mean=tex, tex_dir=np.zeros((32, 32, 3, 2), np.float32), vt=uv,
+             ft=small_head.faces)
+    cfg = {"kind": "flame2020", "model_path": str(tmp_path / "generic_model.pkl"),
+           "landmark_path": str(tmp_path / "landmark_embedding.npy"), "texture_path": str(tmp_path / "FLAME_texture.npz"),
+           "n_shape": 300, "n_expression": 100, "n_texture": 50, "shape_components_in_file": 6}
+    data = load_head_model_data(cfg)
+    assert data.source.startswith("flame2020")
+    model = HeadModel(data, n_shape=300, n_expression=100)
+    assert model.n_shape == 6 and model.n_expression == 4 and model.n_texture == 2
+    p = model.zeros(1)
+    out = model(p["shape"], p["expression"], p["pose"])
+    np.testing.assert_allclose(out.vertices[0].numpy(), small_head.v_template, atol=1e-6)
+    render = HeadRenderer(model, background=(0, 1, 0))(p, orbit_camera(1.0, 0.0, 0.0, image_size=(64, 64)))
+    row = render.rgb[0, :, 32]
+    on_head = render.mask[0, 0, 32] > 0
+    cols = torch.nonzero(on_head).squeeze(1)
+    left, right = row[:, cols[: len(cols) // 3]], row[:, cols[-len(cols) // 3:]]
+    assert left[0].mean() > 3 * left[2].mean() and right[2].mean() > 3 * right[0].mean()
+
+
+def test_malicious_pickle_is_refused(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            import os
+
+            return (os.system, ("echo pwned > " + str(tmp_path / "pwned"),))
+
+    path = tmp_path / "generic_model.pkl"
+    path.write_bytes(pickle.dumps({"f": Evil()}, protocol=2))
+    with pytest.raises(HeadModelFileError, match="generic_model.pkl.*refusing to load"):
+        load_flame_pickle(path)
+    assert not (tmp_path / "pwned").exists()
+
+
+def test_bad_inputs_name_the_file_and_the_problem(tmp_path, small_head):
+    with pytest.raises(HeadModelFileError, match="nothere.pkl: FLAME model file not found"):
+        load_flame_pickle(tmp_path / "nothere.pkl")
+    path = tmp_path / "partial.pkl"
+    path.write_bytes(pickle.dumps({"f": small_head.faces, "v_template": small_head.v_template}, protocol=2))
+    with pytest.raises(HeadModelFileError, match=r"partial.pkl: missing FLAME keys \['shapedirs'"):
+        load_flame_pickle(path)
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    with pytest.raises(HeadModelFileError, match="plain.npy: expected a pickled dict"):
+        load_landmark_embedding(tmp_path / "plain.npy")
+    with pytest.raises(HeadModelFileError, match="model_path"):
+        load_head_model_data({"kind": "flame2020", "model_path": None, "landmark_path": None})
