@@ -37,6 +37,14 @@ class Detection:
     score: float
 
 
+def detect_faces(image_rgb: np.ndarray, upsample: int = 1) -> list[tuple[int, int, int, int]]:
+    """Face boxes (left, top, right, bottom), largest first."""
+    detector, _ = _dlib_models()
+    boxes = detector(np.ascontiguousarray(image_rgb), upsample)
+    boxes = sorted(boxes, key=lambda b: -b.width() * b.height())
+    return [(b.left(), b.top(), b.right(), b.bottom()) for b in boxes]
+
+
 def detect_landmarks(image_rgb: np.ndarray, upsample: int = 1) -> Detection | None:
     """Landmarks of the largest face in an RGB uint8 image, or None when no face is found."""
     import dlib

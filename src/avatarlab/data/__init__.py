@@ -1,0 +1,1 @@
+"""Data sources: synthetic subjects and (later) the synthetic generator, real datasets and schedules."""

@@ -1,0 +1,194 @@
+"""Frames of a subject: a video file (mp4/avi/mpg), several clips, a folder of images, or an INSTA subject folder.
+
+Frames are read with OpenCV, subsampled to a target fps, cropped with ONE square head crop for the whole input
+(from dlib face boxes on sampled frames, so the crop is stable over the video) and resized. Writes
+`frames/NNNNNN.png` and `frames.json` (source of each frame, crop box, fps) atomically.
+`python -m avatarlab.preprocess.frames 'preprocess.inputs=[clip1.mp4,clip2.mp4]' preprocess.subject_dir=...`
+"""
+from __future__ import annotations
+
+import glob
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.io import write_json
+
+log = logging.getLogger(__name__)
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mpg", ".mpeg", ".mov", ".mkv", ".webm"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
+
+
+class InputError(ValueError):
+    """Unusable input; the message names the file and what is wrong."""
+
+
+def expand_inputs(inputs) -> list[Path]:
+    paths: list[Path] = []
+    for item in inputs:
+        matches = sorted(glob.glob(str(item))) or [str(item)]
+        paths += [Path(m) for m in matches]
+    for p in paths:
+        if not p.exists():
+            raise InputError(f"{p}: input not found")
+    return paths
+
+
+def input_kind(path: Path) -> str:
+    if path.is_dir():
+        if list(path.glob("transforms*.json")) and (path / "images").is_dir():
+            return "insta"
+        return "images"
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return "video"
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        return "image"
+    raise InputError(f"{path}: not a video ({', '.join(sorted(VIDEO_SUFFIXES))}), image or image folder")
+
+
+def read_video(path: Path, target_fps: float | None, max_frames: int | None):
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    step = max(1, int(round(fps / target_fps))) if target_fps else 1
+    frames, index = [], 0
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        if index % step == 0:
+            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+            if max_frames and len(frames) >= max_frames:
+                break
+        index += 1
+    cap.release()
+    if not frames:
+        raise InputError(f"{path}: no frames could be decoded")
+    return frames, fps / step
+
+
+def read_images(paths: list[Path]):
+    frames = []
+    for p in paths:
+        image = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if image is None:
+            raise InputError(f"{p}: not a readable image")
+        frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+    return frames
+
+
+def load_frames(inputs: list[Path], target_fps, max_frames):
+    """-> frames (list of RGB uint8), source label per frame, fps, kind."""
+    frames, sources, fps, kinds = [], [], None, set()
+    for path in inputs:
+        kind = input_kind(path)
+        kinds.add(kind)
+        if kind == "video":
+            clip, clip_fps = read_video(path, target_fps, max_frames and max_frames - len(frames))
+            fps = fps or clip_fps
+        else:
+            folder = path / "images" if kind == "insta" else path
+            files = [path] if kind == "image" else sorted(f for f in folder.iterdir()
+                                                           if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not files:
+                raise InputError(f"{folder}: no images found")
+            clip = read_images(files[: max_frames - len(frames)] if max_frames else files)
+            fps = fps or 25.0
+        frames += clip
+        sources += [path.name] * len(clip)
+        if max_frames and len(frames) >= max_frames:
+            break
+    return frames, sources, float(fps or 25.0), sorted(kinds)
+
+
+def stable_head_crop(frames, margin: float, samples: int, upsample: int) -> tuple[int, int, int]:
+    """One square crop (cx, cy, side) for all frames from face boxes on up to `samples` frames."""
+    from avatarlab.preprocess.landmarks import detect_faces
+
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(samples, len(frames))).round().astype(int))
+    boxes = [b for i in idx for b in detect_faces(frames[i], upsample)[:1]]
+    h, w = frames[0].shape[:2]
+    if not boxes:
+        log.warning("no face found on %d sampled frames: using a centred crop", len(idx))
+        side = min(h, w)
+        return w // 2, h // 2, side
+    boxes = np.array(boxes, dtype=np.float64)  # left, top, right, bottom
+    cx = np.median((boxes[:, 0] + boxes[:, 2]) / 2)
+    # dlib boxes cover brows to chin: move the centre up so hair and forehead fit
+    size = np.max(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]))
+    cy = np.median((boxes[:, 1] + boxes[:, 3]) / 2) - 0.15 * size
+    side = int(round(size * margin))
+    return int(round(cx)), int(round(cy)), side
+
+
+def crop_and_resize(frame: np.ndarray, crop, size: int) -> np.ndarray:
+    cx, cy, side = crop
+    half = side / 2
+    # affine map of the crop square onto the output; outside the frame, edge pixels are replicated
+    scale = size / side
+    M = np.array([[scale, 0, -(cx - half) * scale], [0, scale, -(cy - half) * scale]], dtype=np.float64)
+    return cv2.warpAffine(frame, M, (size, size), flags=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def write_frames(subject_dir: Path, frames, sources, fps, crop, size, kinds, inputs) -> dict:
+    out_dir = subject_dir / "frames"
+    tmp_dir = subject_dir / ".frames.tmp"
+    shutil.rmtree(tmp_dir, ignore_errors=True)
+    tmp_dir.mkdir(parents=True)
+    names = []
+    for i, frame in enumerate(tqdm(frames, desc="frames", unit="frame", disable=None)):
+        name = f"{i:06d}.png"
+        cv2.imwrite(str(tmp_dir / name), cv2.cvtColor(crop_and_resize(frame, crop, size), cv2.COLOR_RGB2BGR))
+        names.append(name)
+    shutil.rmtree(out_dir, ignore_errors=True)
+    os.replace(tmp_dir, out_dir)
+    h, w = frames[0].shape[:2]
+    meta = {"count": len(names), "files": names, "sources": sources, "fps": fps, "size": size,
+            "crop": {"cx": crop[0], "cy": crop[1], "side": crop[2]}, "original_size": [h, w], "kinds": kinds,
+            "inputs": [str(p) for p in inputs]}
+    write_json(subject_dir / "frames.json", meta)
+    return meta
+
+
+def crop_points(points: np.ndarray, meta: dict) -> np.ndarray:
+    """Original-image pixel coordinates -> coordinates in the cropped, resized frames."""
+    c = meta["crop"]
+    scale = meta["size"] / c["side"]
+    return (points - np.array([c["cx"] - c["side"] / 2, c["cy"] - c["side"] / 2])) * scale
+
+
+def load_frame_stack(subject_dir: Path) -> tuple[np.ndarray, dict]:
+    meta = json.loads((subject_dir / "frames.json").read_text())
+    frames = [cv2.cvtColor(cv2.imread(str(subject_dir / "frames" / f)), cv2.COLOR_BGR2RGB) for f in meta["files"]]
+    return np.stack(frames), meta
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    setup_run(cfg)
+    pre = cfg.preprocess
+    inputs = expand_inputs(OmegaConf.to_container(pre.inputs))
+    frames, sources, fps, kinds = load_frames(inputs, pre.fps, pre.max_frames)
+    if "insta" in kinds or pre.crop_margin <= 0:
+        h, w = frames[0].shape[:2]
+        crop = (w // 2, h // 2, min(h, w))
+    else:
+        crop = stable_head_crop(frames, float(pre.crop_margin), int(pre.crop_samples), int(pre.detector_upsample))
+    meta = write_frames(Path(pre.subject_dir), frames, sources, fps, crop, int(pre.image_size), kinds, inputs)
+    log.info("%d frames (%s) at %.2f fps, crop %s -> %dx%d in %s/frames", meta["count"], ",".join(kinds), fps,
+             crop, pre.image_size, pre.image_size, pre.subject_dir)
+
+
+if __name__ == "__main__":
+    main()
