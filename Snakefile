@@ -16,6 +16,7 @@ report: "workflow/report/workflow.rst"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/headmodel.smk"
+include: "workflow/rules/preprocess.smk"
 
 
 rule all:

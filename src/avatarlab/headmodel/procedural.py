@@ -25,7 +25,7 @@ from avatarlab.headmodel.sources import HeadModelData, VertexAlbedo
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 8  # bump when the geometry or bases change: invalidates caches
+GENERATOR_VERSION = 9  # bump when the geometry or bases change: invalidates caches
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,11 @@ def _gauss(x, y, cx, cy, sx, sy):
 def _smoothstep(edge0, edge1, x):
     t = np.clip((np.asarray(x, dtype=np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
     return t * t * (3 - 2 * t)
+
+
+def _soft_sign(x, width=0.008):
+    """A smooth sign(x): odd fields must vanish continuously at the midline or the mesh folds there."""
+    return np.tanh(np.asarray(x) / width)
 
 
 def _signed_pow(v, p):
@@ -414,11 +419,11 @@ def build_procedural_head(spec: ProceduralSpec = ProceduralSpec()) -> HeadModelD
         verts * [1, 0, 0], verts * [0, 1, 0], verts * [0, 0, 1],
         np.stack([0 * x, -_smoothstep(0.0, -0.06, y), 0 * x], 1),
         np.stack([0 * x, 0 * x, np.exp(-(x**2) / (2 * 0.008**2)) * _nose_height(y) / 0.022], 1) * front[:, None],
-        np.stack([np.sign(x) * _smoothstep(-0.02, -0.08, y), 0 * x, 0 * x], 1) * head_w[:, None],
-        np.stack([np.sign(x) * (_gauss(x, y, EYE_X, EYE_Y, 0.015, 0.012) + _gauss(x, y, -EYE_X, EYE_Y, 0.015, 0.012)),
+        np.stack([_soft_sign(x) * _smoothstep(-0.02, -0.08, y), 0 * x, 0 * x], 1) * head_w[:, None],
+        np.stack([_soft_sign(x) * (_gauss(x, y, EYE_X, EYE_Y, 0.015, 0.012) + _gauss(x, y, -EYE_X, EYE_Y, 0.015, 0.012)),
                   0 * x, 0 * x], 1) * front[:, None],
         np.stack([0 * x, 0 * x, _gauss(x, y, 0, -0.072, 0.02, 0.015)], 1) * front[:, None],
-        np.stack([np.sign(x), 0 * x, 0.5 + 0 * x], 1) * (_gauss(np.abs(x), y, 0.045, 0.005, 0.015, 0.015))[:, None],
+        np.stack([_soft_sign(x), 0 * x, 0.5 + 0 * x], 1) * (_gauss(np.abs(x), y, 0.045, 0.005, 0.015, 0.015))[:, None],
         np.stack([0 * x, 0 * x, _smoothstep(0.05, 0.1, y)], 1) * front[:, None],
         np.stack([x, 0 * x, 0 * x], 1) * _gauss(x, y, 0, MOUTH_Y, 0.03, 0.012)[:, None] * front[:, None],
         np.stack([0 * x, 0 * x, 0 * x + 1], 1) * regions["lips"][:, None],
@@ -437,17 +442,17 @@ def build_procedural_head(spec: ProceduralSpec = ProceduralSpec()) -> HeadModelD
     upper = (y >= MOUTH_Y).astype(float)
     zero = 0 * x
     expr_fields = [
-        np.stack([0.6 * np.sign(x), zero + 1, zero - 0.4], 1) * smile[:, None],
+        np.stack([0.6 * _soft_sign(x), zero + 1, zero - 0.4], 1) * smile[:, None],
         np.stack([zero, zero + 1, zero], 1) * brows[:, None],
         blink,
         np.stack([zero, zero - 1, zero], 1) * smile[:, None],
-        np.stack([-np.sign(x), zero - 0.6, zero], 1) * inner_brows[:, None],
+        np.stack([-_soft_sign(x), zero - 0.6, zero], 1) * inner_brows[:, None],
         np.stack([-x / 0.02, zero, zero + 1], 1) * lips_w[:, None],
-        np.stack([np.sign(x), zero, zero], 1) * smile[:, None],
+        np.stack([_soft_sign(x), zero, zero], 1) * smile[:, None],
         np.stack([zero, 1 - 2 * upper, zero], 1) * lips_w[:, None],
-        np.stack([np.sign(x), zero, zero + 0.5], 1) * cheeks[:, None],
+        np.stack([_soft_sign(x), zero, zero + 0.5], 1) * cheeks[:, None],
         np.stack([zero, zero + 1, zero + 0.3], 1) * (lips_w * upper)[:, None],
-        np.stack([0.6 * np.sign(x), zero + 1, zero - 0.4], 1) * (smile * (x > 0))[:, None],
+        np.stack([0.6 * _soft_sign(x), zero + 1, zero - 0.4], 1) * (smile * (x > 0))[:, None],
     ]
     face_w = regions["face"].astype(float)
     expr_fields += _smooth_random_fields(rng, verts, face_pts, max(0, spec.n_expression - len(expr_fields)), 3,
@@ -482,7 +487,7 @@ def build_procedural_head(spec: ProceduralSpec = ProceduralSpec()) -> HeadModelD
                                                    1, 3, 0.03, neck_w)[0] * 0.004)
     lower_lip = (regions["lips"] & (y < MOUTH_Y)).astype(float)
     posedirs[:, 2, 9 + 7] = 0.004 * lower_lip  # sin(jaw angle): lower lip rolls out
-    jaw_cheeks = np.sign(x) * cheeks * weights[:, 2]  # only where the jaw carries the skin
+    jaw_cheeks = _soft_sign(x) * cheeks * weights[:, 2]  # only where the jaw carries the skin
     posedirs[:, 0, 9 + 4] = -0.004 * jaw_cheeks  # cos(jaw angle) - 1: cheeks thin as the mouth opens
     posedirs[:, 0, 9 + 8] = -0.004 * jaw_cheeks
 

@@ -1,0 +1,323 @@
+"""FLAME fit from RGB (seed 002, section 2.3, eq. 1), for a single image or a video.
+
+Video: keyframes (at most a quarter of the frames, spread over the yaw range, extremes included) get the full fit of
+shared shape, texture, lighting and focal length plus per-frame expression, pose and extrinsics; the other frames
+keep the shared values fixed and fit extrinsics, expression and pose with fewer iterations, warm-started from the
+nearest frame already fitted. Each fit starts rigid (extrinsics on the inner 51 landmarks), as in
+photometric_optimization. Writes `fit_rgb.npz`, `fit_rgb.json` and an overlay PNG.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import hydra
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from omegaconf import DictConfig
+
+from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.headmodel import HeadModel, load_head_model
+from avatarlab.headmodel.flame import rodrigues
+from avatarlab.headmodel.texture import default_lighting
+from avatarlab.io import atomic_path, write_json, write_png
+from avatarlab.preprocess.frames import load_frame_stack
+from avatarlab.render.camera import Camera, intrinsics
+from avatarlab.render.head_renderer import HeadRenderer
+
+log = logging.getLogger(__name__)
+INNER = slice(17, 68)  # the 51 landmarks without the jaw contour (rigid stage)
+
+
+@dataclass
+class FitWeights:
+    photometric: float = 8.0
+    landmarks: float = 1.0
+    shape_reg: float = 1e-4
+    expression_reg: float = 1e-4
+    texture_reg: float = 1e-4
+    pose_reg: float = 1e-2
+    eye_symmetry: float = 1e-1
+
+
+def rgb_fit_loss(pred_rgb, gt_rgb, mask, pred_lmk, gt_lmk, lmk_valid, shape, expression, texture, pose,
+                 weights: FitWeights, image_size: int, landmark_idx=slice(None)) -> dict[str, torch.Tensor]:
+    """Eq. (1): masked photometric L1 + landmark L1 + coefficient priors + pose prior + eye symmetry.
+
+    pred_rgb, gt_rgb (B,3,H,W); mask (B,1,H,W); landmarks (B,68,2) in pixels, compared in units of the image size;
+    coefficients are in units of their standard deviation (sigma = 1), so the priors are plain squares.
+    """
+    terms = {}
+    if weights.photometric > 0:
+        terms["photometric"] = weights.photometric * ((pred_rgb - gt_rgb).abs() * mask).sum() / (
+            3 * mask.sum()).clamp(min=1)
+    diff = ((pred_lmk - gt_lmk) / image_size).abs()[:, landmark_idx] * lmk_valid[:, None, None]
+    terms["landmarks"] = weights.landmarks * diff.sum() / (2 * diff.shape[1] * lmk_valid.sum().clamp(min=1))
+    terms["shape_reg"] = weights.shape_reg * (shape**2).sum()
+    terms["expression_reg"] = weights.expression_reg * (expression**2).sum() / expression.shape[0]
+    terms["texture_reg"] = weights.texture_reg * (texture**2).sum()
+    rot = rodrigues(pose[:, 3:].reshape(-1, 4, 3))  # neck, jaw, eyes; rest pose theta* = 0 -> R = I
+    terms["pose_reg"] = weights.pose_reg * ((rot - torch.eye(3)) ** 2).sum() / pose.shape[0]
+    terms["eye_symmetry"] = weights.eye_symmetry * 0.5 * ((pose[:, 9:12] - pose[:, 12:15]) ** 2).sum() / pose.shape[0]
+    terms["total"] = sum(terms.values())
+    return terms
+
+
+def pnp_extrinsics(model: HeadModel, landmarks: np.ndarray, K: np.ndarray):
+    """Per-frame (rvec, tvec) from the neutral model's 3D landmarks and the detected 2D ones (OpenCV PnP)."""
+    p = model.zeros(1)
+    with torch.no_grad():
+        lm3d = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].numpy().astype(np.float64)
+    model_width = np.linalg.norm(lm3d[0] - lm3d[16])
+    rvecs, tvecs = [], []
+    for pts in landmarks:
+        # start from a frontal head at the distance its landmark spread implies, so PnP cannot flip behind
+        distance = K[0, 0] * model_width / max(np.linalg.norm(pts[0] - pts[16]), 1.0)
+        centre = (pts.mean(0) - K[:2, 2]) * distance / K[0, 0]
+        rvec0 = np.array([[np.pi], [0.0], [0.0]])
+        tvec0 = np.array([[centre[0]], [centre[1]], [distance]])
+        ok, rvec, tvec = cv2.solvePnP(lm3d, pts.astype(np.float64), K, None, rvec0, tvec0, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or tvec[2] <= 0:
+            rvec, tvec = rvec0, tvec0
+        rvecs.append(rvec.reshape(3))
+        tvecs.append(tvec.reshape(3))
+    return np.array(rvecs), np.array(tvecs)
+
+
+def yaw_of(rvecs: np.ndarray) -> np.ndarray:
+    """Head yaw (degrees) seen by the camera, from world->camera rotations."""
+    R = axis_angle_to_rotation_matrix(torch.from_numpy(rvecs).float()).numpy()
+    forward = R @ np.array([0, 0, 1.0])  # the face direction in camera axes
+    return np.degrees(np.arctan2(forward[:, 0], -forward[:, 2]))
+
+
+def choose_keyframes(yaw: np.ndarray, count: int) -> np.ndarray:
+    """`count` frames spread over the yaw range, extremes included (the dissertation's -90/0/90 keyframes)."""
+    order = np.argsort(yaw)
+    if count >= len(yaw):
+        return np.sort(order)
+    targets = np.linspace(yaw[order[0]], yaw[order[-1]], count)
+    chosen: list[int] = []
+    for target in targets:
+        for i in np.argsort(np.abs(yaw - target)):
+            if i not in chosen:
+                chosen.append(int(i))
+                break
+    return np.sort(np.array(chosen))
+
+
+class RGBFitter:
+    """Parameters as tensors, one Adam per stage, each loss term a named line with its weight from config."""
+
+    def __init__(self, model: HeadModel, image_size: int, weights: FitWeights, lr: float, background):
+        self.model = model
+        self.size = image_size
+        self.weights = weights
+        self.lr = lr
+        self.renderer = HeadRenderer(model, background=background)
+
+    def render(self, shape, expression, pose, texture, lighting, focal, rot, trans):
+        n = expression.shape[0]
+        K = intrinsics(1.0, (self.size, self.size), n)
+        K[:, 0, 0] = K[:, 1, 1] = focal.exp().expand(n)  # one shared focal length, optimised in log space
+        camera = Camera(K=K, R=axis_angle_to_rotation_matrix(rot), t=trans, image_size=(self.size, self.size))
+        params = {"shape": shape.expand(n, -1), "expression": expression, "pose": pose,
+                  "texture": texture.expand(n, -1)}
+        return self.renderer(params, camera, lighting.expand(n, -1, -1)), camera
+
+    def optimize(self, images, landmarks, masks, valid, init: dict, free: set[str], iterations: int,
+                 rigid_iterations: int) -> tuple[dict, list[float]]:
+        """images (B,3,H,W), landmarks (B,68,2), masks (B,1,H,W), valid (B,). Optimises the names in `free`."""
+        state = {k: v.clone().requires_grad_(k in free | {"rot", "trans"}) for k, v in init.items()}
+        history = []
+        for stage, steps, names in (("rigid", rigid_iterations, {"rot", "trans"}),
+                                    ("full", iterations, free | {"rot", "trans"})):
+            if steps <= 0:
+                continue
+            # translations are in metres: a tenth of the step of the unitless coefficients and radians
+            optim = torch.optim.Adam([{"params": [state[k]], "lr": self.lr * (0.1 if k == "trans" else 1.0)}
+                                      for k in names])
+            for _ in range(steps):
+                optim.zero_grad()
+                out, _ = self.render(**state)
+                w = self.weights if stage == "full" else FitWeights(photometric=0.0, landmarks=1.0, shape_reg=0,
+                                                                  expression_reg=0, texture_reg=0, pose_reg=0,
+                                                                  eye_symmetry=0)
+                terms = rgb_fit_loss(out.rgb, images, masks, out.landmarks2d, landmarks, valid, state["shape"],
+                                     state["expression"], state["texture"], state["pose"], w, self.size,
+                                     INNER if stage == "rigid" else slice(None))
+                terms["total"].backward()
+                optim.step()
+                history.append(float(terms["total"].detach()))
+        return {k: v.detach() for k, v in state.items()}, history
+
+
+def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs) -> dict:
+    return {"shape": torch.zeros(1, model.n_shape), "texture": torch.zeros(1, model.n_texture),
+            "lighting": default_lighting(1), "focal": torch.tensor([np.log(focal)], dtype=torch.float32),
+            "expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
+            "rot": torch.from_numpy(rvecs).float(), "trans": torch.from_numpy(tvecs).float()}
+
+
+def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found: np.ndarray, masks: np.ndarray):
+    fit = cfg.fit_rgb
+    model = load_head_model(cfg.head_model)
+    size = frames.shape[1]
+    weights = FitWeights(**fit.weights)
+    fitter = RGBFitter(model, size, weights, float(fit.lr), tuple(cfg.render.background))
+    focal0 = float(fit.initial_focal) * size
+    K0 = intrinsics(focal0, (size, size))[0].numpy().astype(np.float64)
+    idx = np.nonzero(found)[0]
+    if len(idx) == 0:
+        raise ValueError("no frame has landmarks: nothing to fit")
+    rvecs, tvecs = pnp_extrinsics(model, landmarks[idx], K0)
+    yaw = yaw_of(rvecs)
+    n_key = max(1, min(int(fit.max_keyframes), len(idx) // 4 if len(idx) >= 4 else 1))
+    key_local = choose_keyframes(yaw, n_key)
+    images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
+    mask_t = torch.from_numpy(masks[:, None]).float()
+    lm_t = torch.from_numpy(np.nan_to_num(landmarks)).float()
+    ones = torch.ones(len(frames))
+
+    n = len(frames)
+    result = {"expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
+              "rot": torch.zeros(n, 3), "trans": torch.zeros(n, 3)}
+    fitted = np.zeros(n, bool)
+    key = idx[key_local]
+    state = initial_state(model, len(key), focal0, rvecs[key_local], tvecs[key_local])
+    start = time.perf_counter()
+    state, hist_key = fitter.optimize(images[key], lm_t[key], mask_t[key], ones[key], state,
+                                      {"shape", "texture", "lighting", "focal", "expression", "pose"},
+                                      int(fit.keyframe_iterations), int(fit.rigid_iterations))
+    shared = {k: state[k] for k in ("shape", "texture", "lighting", "focal")}
+    for k in result:
+        result[k][key] = state[k]
+    fitted[key] = True
+    log.info("keyframes %s (yaw %s deg) fitted in %.1fs, loss %.4f -> %.4f", key.tolist(),
+             np.round(yaw[key_local]).astype(int).tolist(), time.perf_counter() - start, hist_key[0], hist_key[-1])
+    rest = [i for i in idx if i not in set(key.tolist())]
+    chunk = int(fit.chunk)
+    rvec_of = dict(zip(idx.tolist(), rvecs))
+    tvec_of = dict(zip(idx.tolist(), tvecs))
+    hist_rest = []
+    for c in range(0, len(rest), chunk):
+        ids = np.array(rest[c:c + chunk])
+        done = np.nonzero(fitted)[0]
+        nearest = done[np.abs(done[None, :] - ids[:, None]).argmin(1)]
+        init = dict(shared, expression=result["expression"][nearest].clone(), pose=result["pose"][nearest].clone(),
+                    rot=torch.from_numpy(np.array([rvec_of[i] for i in ids])).float(),
+                    trans=torch.from_numpy(np.array([tvec_of[i] for i in ids])).float())
+        out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], ones[ids], init, {"expression", "pose"},
+                                    int(fit.frame_iterations), int(fit.frame_rigid_iterations))
+        for k in result:
+            result[k][ids] = out[k]
+        fitted[ids] = True
+        hist_rest.append(hist[-1])
+    seconds = time.perf_counter() - start
+    return model, fitter, shared, result, fitted, key, seconds, hist_key
+
+
+@torch.no_grad()
+def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, found, masks):
+    ids = np.nonzero(fitted)[0]
+    out, camera = fitter.render(shared["shape"], result["expression"][ids], result["pose"][ids], shared["texture"],
+                                shared["lighting"], shared["focal"], result["rot"][ids], result["trans"][ids])
+    lm_err = np.linalg.norm(out.landmarks2d.numpy() - landmarks[ids], axis=-1)
+    iod = np.linalg.norm(landmarks[ids, 36] - landmarks[ids, 45], axis=-1)
+    m = torch.from_numpy(masks[ids, None]).float()
+    photo = ((out.rgb - images[ids]).abs() * m).sum() / (3 * m.sum())
+    return out, camera, {"landmark_error_px": float(lm_err.mean()), "landmark_nme": float((lm_err.mean(1) / iod).mean()),
+                         "photometric_l1": float(photo)}
+
+
+def procrustes_error_mm(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean vertex distance (mm) after the similarity transform that best maps a onto b (Umeyama)."""
+    ma, mb = a.mean(0), b.mean(0)
+    A, B = a - ma, b - mb
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = (S * np.diag(D)).sum() / (A**2).sum()
+    return float(1000 * np.linalg.norm(s * A @ R.T - B, axis=1).mean())
+
+
+@torch.no_grad()
+def compare_with_truth(model: HeadModel, shared, result, fitted, truth_path: str) -> dict:
+    with np.load(truth_path) as t:
+        truth = {k: t[k] for k in ("shape", "expression", "pose")}
+    ids = np.nonzero(fitted)[0]
+    zeros = torch.zeros(1, model.n_expression)
+    fit_neutral = model(shared["shape"], zeros, torch.zeros(1, 15)).vertices[0].numpy()
+    true_neutral = model(torch.from_numpy(truth["shape"])[None], zeros, torch.zeros(1, 15)).vertices[0].numpy()
+    face = model.regions["face"].numpy()
+    expr_errors, jaw_errors = [], []
+    for i in ids:
+        pose_fit = result["pose"][i:i + 1].clone()
+        pose_true = torch.from_numpy(truth["pose"][i:i + 1]).clone()
+        pose_fit[:, :6] = 0  # compare expression + jaw in the head's own frame
+        pose_true[:, :6] = 0
+        v_fit = model(shared["shape"], result["expression"][i:i + 1], pose_fit).vertices[0].numpy()
+        v_true = model(torch.from_numpy(truth["shape"])[None], torch.from_numpy(truth["expression"][i:i + 1]),
+                       pose_true).vertices[0].numpy()
+        expr_errors.append(1000 * np.linalg.norm((v_fit - fit_neutral) - (v_true - true_neutral), axis=1)[face].mean())
+        jaw_errors.append(np.degrees(abs(float(result["pose"][i, 6]) - float(truth["pose"][i, 6]))))
+    return {"shape_error_mm": procrustes_error_mm(fit_neutral[face], true_neutral[face]),
+            "expression_error_mm": float(np.mean(expr_errors)), "jaw_error_deg": float(np.mean(jaw_errors))}
+
+
+def overlay_sheet(frames: np.ndarray, rendered: np.ndarray, landmarks: np.ndarray, count: int = 6) -> np.ndarray:
+    """Top: frames with detected (red) landmarks; bottom: the fit blended over the frame with its landmarks."""
+    sel = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
+    top = [frames[i].copy() for i in sel]
+    bottom = [(0.5 * frames[i] + 0.5 * rendered[i]).astype(np.uint8) for i in sel]
+    for img, i in zip(top, sel):
+        for x, y in np.nan_to_num(landmarks[i]).astype(int):
+            cv2.circle(img, (int(x), int(y)), 1, (255, 0, 0), -1)
+    return np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0)
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    setup_run(cfg)
+    subject_dir = Path(cfg.preprocess.subject_dir)
+    frames, meta = load_frame_stack(subject_dir)
+    with np.load(subject_dir / "landmarks.npz") as lm:
+        landmarks, found = lm["points"], lm["found"]
+    with np.load(subject_dir / "masks.npz") as mk:
+        masks = mk["masks"]
+    model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks)
+    images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
+    out, camera, report = evaluate_fit(fitter, shared, result, fitted, images, np.nan_to_num(landmarks), found,
+                                       masks)
+    report.update({"frames": len(frames), "fitted": int(fitted.sum()), "keyframes": key.tolist(),
+                   "seconds": seconds, "focal_px": float(shared["focal"].exp()), "head_model": model.source})
+    truth = cfg.preprocess.get("truth")
+    if truth and Path(truth).is_file():
+        report["truth"] = compare_with_truth(model, shared, result, fitted, truth)
+    n = len(frames)
+    K = np.zeros((n, 3, 3), np.float32)
+    R = np.zeros((n, 3, 3), np.float32)
+    ids = np.nonzero(fitted)[0]
+    K[ids], R[ids] = camera.K.numpy(), camera.R.numpy()
+    with atomic_path(subject_dir / "fit_rgb.npz") as tmp:
+        np.savez(tmp, shape=shared["shape"][0].numpy(), texture=shared["texture"][0].numpy(),
+                 lighting=shared["lighting"][0].numpy(), expression=result["expression"].numpy(),
+                 pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(), fitted=fitted, keyframes=key,
+                 image_size=frames.shape[1])
+    rendered = np.zeros_like(frames)
+    rendered[ids] = (out.rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
+    write_png(subject_dir / "fit_rgb_overlay.png", overlay_sheet(frames[ids], rendered[ids], landmarks[ids]))
+    write_json(subject_dir / "fit_rgb.json", report)
+    log.info("RGB fit of %d frames in %.0fs: landmark error %.2f px (NME %.4f), photometric L1 %.4f%s", fitted.sum(),
+             seconds, report["landmark_error_px"], report["landmark_nme"], report["photometric_l1"],
+             "; vs truth: shape %.2f mm, expression %.2f mm, jaw %.2f deg" % tuple(report["truth"].values())
+             if "truth" in report else "")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,155 @@
+# Per-subject preprocessing: frames -> landmarks -> masks -> FLAME fits (RGB, RGBD) and frame interpolation.
+
+
+rule synthesize_subject:
+    input:
+        conf=conf_files(),
+        code=source_files("data", "headmodel", "render"),
+    output:
+        video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
+        truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
+    log:
+        f"{LOGS}/subjects/{{subject}}/synthesize.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
+        preset=lambda wc: SUBJECTS[wc.subject].get("preset", "talking"),
+        seed=lambda wc: SUBJECTS[wc.subject].get("seed", 0),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.data.synthetic_subject {params.hydra} threads={threads} subject.name={wildcards.subject}"
+        " subject.preset={params.preset} subject.seed={params.seed} 'subject.video_out={output.video}'"
+        " 'subject.truth_out={output.truth}' > {log} 2>&1"
+
+
+rule extract_frames:
+    input:
+        media=subject_inputs,
+        conf=conf_files(),
+        code=source_files("preprocess"),
+    output:
+        frames=directory(f"{RESULTS}/subjects/{{subject}}/frames"),
+        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+    log:
+        f"{LOGS}/subjects/{{subject}}/frames.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/frames"),
+        subject=subject_args,
+        inputs=lambda wc, input: "'preprocess.inputs=[" + ",".join(f'"{p}"' for p in input.media) + "]'",
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.frames {params.hydra} threads={threads} {params.subject} {params.inputs}"
+        " > {log} 2>&1"
+
+
+rule detect_landmarks:
+    input:
+        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+        truth=lambda wc: subject_truth(wc.subject),
+        conf=conf_files(),
+        code=source_files("preprocess"),
+    output:
+        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        report=f"{RESULTS}/subjects/{{subject}}/landmarks.json",
+    log:
+        f"{LOGS}/subjects/{{subject}}/landmarks.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/landmarks"),
+        subject=subject_args,
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.track_landmarks {params.hydra} threads={threads} {params.subject} > {log} 2>&1"
+
+
+rule segment_masks:
+    input:
+        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        truth=lambda wc: subject_truth(wc.subject),
+        conf=conf_files(),
+        code=source_files("preprocess"),
+    output:
+        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        report=f"{RESULTS}/subjects/{{subject}}/masks.json",
+    log:
+        f"{LOGS}/subjects/{{subject}}/masks.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/masks"),
+        subject=subject_args,
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.masks {params.hydra} threads={threads} {params.subject} > {log} 2>&1"
+
+
+rule fit_rgb:
+    input:
+        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        truth=lambda wc: subject_truth(wc.subject),
+        conf=conf_files(),
+        code=source_files("preprocess", "headmodel", "render"),
+    output:
+        params=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        report=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
+        overlay=report(f"{RESULTS}/subjects/{{subject}}/fit_rgb_overlay.png", caption="../report/fit_rgb.rst",
+                       category="Preprocessing", subcategory="{subject}"),
+    log:
+        f"{LOGS}/subjects/{{subject}}/fit_rgb.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgb"),
+        subject=subject_args,
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.fit_rgb {params.hydra} threads={threads} {params.subject} > {log} 2>&1"
+
+
+rule fit_rgbd:
+    input:
+        truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
+        video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
+        rgb=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
+        conf=conf_files(),
+        code=source_files("preprocess", "headmodel", "render"),
+    output:
+        report=f"{RESULTS}/subjects/{{subject}}/fit_rgbd.json",
+    log:
+        f"{LOGS}/subjects/{{subject}}/fit_rgbd.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgbd"),
+        subject=subject_args,
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.fit_rgbd {params.hydra} threads={threads} {params.subject}"
+        " 'fit_rgbd.out={output.report}' > {log} 2>&1"
+
+
+rule interpolate_frames:
+    input:
+        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+        conf=conf_files(),
+        code=source_files("preprocess"),
+    output:
+        report=f"{RESULTS}/subjects/{{subject}}/interp.json",
+        frames=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
+        figure=report(f"{RESULTS}/subjects/{{subject}}/interp_comparison.png", caption="../report/interp.rst",
+                      category="Preprocessing", subcategory="{subject}"),
+    log:
+        f"{LOGS}/subjects/{{subject}}/interp.log",
+    params:
+        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/interp"),
+        subject=subject_args,
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.interp.run {params.hydra} threads={threads} {params.subject} > {log} 2>&1"
