@@ -1,0 +1,153 @@
+import numpy as np
+import pytest
+import torch
+
+from avatarlab.headmodel import HeadModel
+from avatarlab.preprocess.fit_rgb import FitWeights, choose_keyframes, procrustes_error_mm, rgb_fit_loss
+from avatarlab.preprocess.fit_rgbd import (depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks)
+from avatarlab.preprocess.frames import InputError, crop_and_resize, crop_points, expand_inputs, input_kind, read_video
+from avatarlab.preprocess.interp.network import XVFILite, backward_warp
+from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal_vote
+from avatarlab.render import orbit_camera
+from avatarlab.render.head_renderer import HeadRenderer
+from avatarlab.render.mesh_renderer import vertex_normals
+
+
+def test_bad_inputs_are_named(tmp_path):
+    with pytest.raises(InputError, match="missing.mp4: input not found"):
+        expand_inputs([tmp_path / "missing.mp4"])
+    notes = tmp_path / "notes.txt"
+    notes.write_text("hello")
+    with pytest.raises(InputError, match="notes.txt: not a video"):
+        input_kind(notes)
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"\x00garbage" * 100)
+    with pytest.raises(InputError, match="broken.mp4: (OpenCV cannot open|no frames could be decoded)"):
+        read_video(broken, None, None)
+
+
+def test_crop_maps_points_consistently():
+    frame = np.zeros((200, 300, 3), np.uint8)
+    frame[120:123, 180:183] = 255  # a dot centred at pixel (181, 121): continuous centre (181.5, 121.5)
+    meta = {"crop": {"cx": 170, "cy": 100, "side": 120}, "size": 60}
+    out = crop_and_resize(frame, (170, 100, 120), 60)
+    ys, xs = np.nonzero(out[..., 0] > 60)
+    found = np.array([xs.mean() + 0.5, ys.mean() + 0.5])
+    np.testing.assert_allclose(crop_points(np.array([[181.5, 121.5]]), meta)[0], found, atol=0.8)
+
+
+def test_mask_helpers():
+    masks = np.zeros((5, 4, 4), np.uint8)
+    masks[[0, 1, 3, 4], 1:3, 1:3] = 1  # frame 2 lost the mask
+    voted = temporal_vote(masks, 3)
+    assert voted[2, 1:3, 1:3].all() and voted.sum() == 5 * 4
+    found = np.array([True, True, False, True, True])
+    filled = fill_missing(masks.copy(), found)
+    assert (filled[2] == masks[1]).all()
+    assert iou(masks[0] > 0, masks[0] > 0) == 1.0
+
+
+@pytest.fixture(scope="module")
+def synthetic_frame(head_model: HeadModel):
+    renderer = HeadRenderer(head_model, background=(0.35, 0.45, 0.55))
+    params = head_model.zeros(1)
+    params["pose"][0, 6] = 0.2
+    with torch.no_grad():
+        out = renderer(params, orbit_camera(1.0, 0.0, 0.0, image_size=(192, 192)))
+    image = (out.rgb[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    return image, out
+
+
+def test_grabcut_mask_follows_the_head(synthetic_frame):
+    image, out = synthetic_frame
+    mask = grabcut_mask(image, out.landmarks2d[0].numpy())
+    assert iou(mask > 0, out.mask[0, 0].numpy() > 0) > 0.8
+
+
+def test_keyframes_cover_the_yaw_range():
+    yaw = np.array([0, 5, -40, 10, 60, -5, 20, 3])
+    keys = choose_keyframes(yaw, 3)
+    assert set(keys) >= {2, 4} and len(keys) == 3
+    assert list(choose_keyframes(yaw, 10)) == list(range(8))
+
+
+def test_rgb_fit_loss_is_zero_at_a_perfect_fit_and_names_each_term():
+    img = torch.rand(2, 3, 8, 8)
+    lmk = torch.rand(2, 68, 2) * 8
+    zeros = lambda n: torch.zeros(1, n)  # noqa: E731
+    terms = rgb_fit_loss(img, img, torch.ones(2, 1, 8, 8), lmk, lmk, torch.ones(2), zeros(5), torch.zeros(2, 4),
+                         zeros(3), torch.zeros(2, 15), FitWeights(), 8)
+    assert set(terms) == {"photometric", "landmarks", "shape_reg", "expression_reg", "texture_reg", "pose_reg",
+                          "eye_symmetry", "total"}
+    assert float(terms["total"]) == pytest.approx(0.0, abs=1e-6)
+    pose = torch.zeros(2, 15)
+    pose[:, 9:12] = 0.3  # only the left eye turned: the eye-symmetry term of eq. 1 sees it
+    terms = rgb_fit_loss(img, img * 0.5, torch.ones(2, 1, 8, 8), lmk + 1, lmk, torch.ones(2), zeros(5) + 1,
+                         torch.zeros(2, 4), zeros(3), pose, FitWeights(), 8)
+    assert terms["eye_symmetry"] > 0 and terms["photometric"] > 0 and terms["landmarks"] > 0 and terms["shape_reg"] > 0
+
+
+def test_procrustes_error_ignores_similarity_transforms():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(50, 3))
+    c, s = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    assert procrustes_error_mm(pts, 1.3 * pts @ R.T + 2.0) == pytest.approx(0.0, abs=1e-9)
+    assert procrustes_error_mm(pts, pts + rng.normal(0, 0.001, pts.shape)) > 0.5
+
+
+def test_rgbd_pieces_are_exact_on_synthetic_depth(head_model, synthetic_frame):
+    _, out = synthetic_frame
+    cam = orbit_camera(1.0, 0.0, 0.0, image_size=(192, 192))
+    K = cam.K[0].numpy()
+    depth, mask = out.depth[0, 0].numpy(), out.mask[0, 0].numpy()
+    params = head_model.zeros(1)
+    params["pose"][0, 6] = 0.2
+    geo = head_model(params["shape"], params["expression"], params["pose"])
+    true_lmk = cam.world_to_camera(geo.landmarks3d)[0].detach().numpy()
+    lifted, valid = lift_landmarks(out.landmarks2d[0].numpy(), depth, K, window=0)
+    inner = np.arange(17, 48)  # brows, nose, eyes: on smooth surface
+    assert np.linalg.norm(lifted[inner] - true_lmk[inner], axis=1).mean() < 0.002
+    outlier = lifted.copy()
+    outlier[30, 2] += 0.1  # a landmark that sees through the mouth
+    _, _, kept = robust_landmarks(head_model, outlier, valid & (np.arange(68) >= 17))
+    assert not kept[30] and kept[36:48].all()
+    cloud = torch.from_numpy(depth_to_points(depth, mask, K)).float()
+    verts = cam.world_to_camera(geo.vertices)[0].detach()
+    terms = rgbd_block_losses(torch.from_numpy(true_lmk), torch.from_numpy(true_lmk), verts,
+                              vertex_normals(verts[None], head_model.faces)[0], cloud, (1.0, 1000.0))
+    assert float(terms["block1"]) < 1e-6
+    assert np.sqrt(float(terms["block3"])) < 0.0015, "at the true parameters the point-to-mesh error is sub-mm"
+
+
+def test_backward_warp_shifts_and_interpolator_starts_as_cross_fade():
+    img = torch.zeros(1, 1, 6, 6)
+    img[..., 2, 3] = 1.0
+    flow = torch.zeros(1, 2, 6, 6)
+    flow[:, 0] = 1.0  # sample one pixel to the right
+    assert backward_warp(img, flow)[0, 0, 2, 2] == pytest.approx(1.0)
+    net = XVFILite(width=8, scales=2)
+    a, b = torch.rand(2, 3, 16, 16), torch.rand(2, 3, 16, 16)
+    np.testing.assert_allclose(net(a, b).detach().numpy(), (0.5 * (a + b)).numpy(), atol=1e-5)
+
+
+def test_interpolation_training_resumes_to_the_same_result(tmp_path):
+    from omegaconf import OmegaConf
+
+    from avatarlab.preprocess.interp.run import train, training_triplets
+
+    cfg = OmegaConf.create({"seed": 0, "interp": {"width": 8, "scales": 2, "lr": 1e-3, "batch": 2, "iterations": 6,
+                                                  "checkpoint_every": 3}})
+    frames = torch.rand(9, 3, 16, 16)
+    triplets = training_triplets(np.arange(0, 9, 2))
+    full, _ = train(frames, triplets, cfg, tmp_path / "full.pt")
+    # "killed" after 3 steps: a checkpoint at step 3 exists; the rerun resumes from it
+    cfg_short = OmegaConf.merge(cfg, {"interp": {"iterations": 3}})
+    train(frames, triplets, cfg_short, tmp_path / "resumed.pt")
+    state = torch.load(tmp_path / "resumed.pt", weights_only=False)
+    state["fingerprint"] = state["fingerprint"].replace("iterations: 3", "iterations: 6")
+    torch.save(state, tmp_path / "resumed.pt")
+    resumed, losses = train(frames, triplets, cfg, tmp_path / "resumed.pt")
+    assert len(losses) == 6
+    for p, q in zip(full.parameters(), resumed.parameters()):
+        torch.testing.assert_close(p, q)
