@@ -17,6 +17,7 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/headmodel.smk"
 include: "workflow/rules/preprocess.smk"
+include: "workflow/rules/pretrain.smk"
 
 
 rule all:

@@ -31,11 +31,20 @@ def hydra_args(run_dir):
 
 
 SUBJECTS = config.get("subjects", {})
+REAL_IMAGES = config["real_images"]
+ALL_SUBJECTS = {**SUBJECTS, REAL_IMAGES["name"]: REAL_IMAGES}
 SYNTHETIC = [name for name, s in SUBJECTS.items() if s["source"] == "synthetic"]
+IMAGE_SETS = [name for name, s in ALL_SUBJECTS.items() if s["source"] in ("portraits", "images")]
+ALPHAS, BETAS, RENDERERS = config["alphas"], config["betas"], config["renderers"]
+PRETRAINED = ALPHAS + [f"{b}_from_{a}" for b in BETAS for a in ALPHAS]
+TRACKING_READY = "results/mlflow.ready"
 
 
 wildcard_constraints:
-    subject="|".join(SUBJECTS) or "none",
+    subject="|".join(ALL_SUBJECTS),
+    alpha="|".join(ALPHAS),
+    beta="|".join(BETAS),
+    renderer="|".join(RENDERERS),
 
 
 def subject_dir(subject):
@@ -44,9 +53,11 @@ def subject_dir(subject):
 
 def subject_inputs(wildcards):
     """Files the frames of a subject come from: its synthetic video, or the user's paths (globs allowed)."""
-    spec = SUBJECTS[wildcards.subject]
+    spec = ALL_SUBJECTS[wildcards.subject]
     if spec["source"] == "synthetic":
         return [f"{subject_dir(wildcards.subject)}/input/video.mp4"]
+    if spec["source"] == "portraits":
+        return [f"{subject_dir(wildcards.subject)}/input/images"]
     import glob
 
     paths = sorted(glob.glob(spec["path"])) or [spec["path"]]
@@ -65,6 +76,8 @@ def subject_args(wildcards, input=None):
     truth = subject_truth(sub)
     if truth:
         args.append(f"preprocess.truth={truth[0]}")
+    if sub in IMAGE_SETS:
+        args.append("fit_rgb.mode=images")
     return " ".join(f"'{a}'" for a in args)
 
 
@@ -77,4 +90,31 @@ def get_final_output():
         outputs += [f"{subject_dir(subject)}/fit_rgb.json", f"{subject_dir(subject)}/interp.json"]
     for subject in SYNTHETIC:
         outputs += [f"{subject_dir(subject)}/fit_rgbd.json"]
+    outputs += pretrain_outputs()
     return outputs
+
+
+def pretrain_outputs():
+    return [f"{RESULTS}/pretrain/{name}/metrics.json" for name in PRETRAINED] + [
+        f"{RESULTS}/report/renderer_experiment.json"]
+
+
+def real_set(name):
+    """The preprocessed real image set that pretraining reads."""
+    folder = subject_dir(name)
+    return {"fit": f"{folder}/fit_rgb.npz", "masks": f"{folder}/masks.npz", "frames": f"{folder}/frames.json"}
+
+
+PRETRAIN_INPUTS = dict(
+    **real_set(REAL_IMAGES["name"]),
+    tracking=TRACKING_READY,
+    conf=conf_files(*[f"strategy/{s}.yaml" for s in ALPHAS + BETAS]),
+    code=source_files("train", "model", "data", "headmodel", "render") + [str(REPO / "src/avatarlab/tracking.py")],
+)
+
+
+def pretrain_args(wc, name, strategy, out_dir, extra=()):
+    """Hydra overrides of one pretraining run."""
+    args = [f"strategy={strategy}", f"pretrain.name={name}", f"pretrain.out_dir={out_dir}",
+            f"pretrain.real_subject_dir={subject_dir(REAL_IMAGES['name'])}", *extra]
+    return " ".join(f"'{a}'" for a in args)

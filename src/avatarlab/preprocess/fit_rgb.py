@@ -188,6 +188,8 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     result = {"expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
               "rot": torch.zeros(n, 3), "trans": torch.zeros(n, 3)}
     fitted = np.zeros(n, bool)
+    if fit.mode == "images":  # unrelated photographs: every image its own identity, camera and lighting
+        return fit_images(fitter, model, fit, images, lm_t, mask_t, idx, rvecs, tvecs, focal0, result, fitted)
     key = idx[key_local]
     state = initial_state(model, len(key), focal0, rvecs[key_local], tvecs[key_local])
     start = time.perf_counter()
@@ -222,11 +224,38 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     return model, fitter, shared, result, fitted, key, seconds, hist_key
 
 
+def fit_images(fitter, model, fit, images, lm_t, mask_t, idx, rvecs, tvecs, focal0, result, fitted):
+    n = len(images)
+    shared = {"shape": torch.zeros(n, model.n_shape), "texture": torch.zeros(n, model.n_texture),
+              "lighting": default_lighting(n), "focal": torch.full((n,), float(np.log(focal0)))}
+    start = time.perf_counter()
+    hist = [0.0]
+    chunk = int(fit.chunk)
+    for c in range(0, len(idx), chunk):
+        ids = idx[c:c + chunk]
+        local = np.arange(c, c + len(ids))
+        init = {"shape": shared["shape"][ids], "texture": shared["texture"][ids], "lighting": shared["lighting"][ids],
+                "focal": shared["focal"][ids], "expression": result["expression"][ids], "pose": result["pose"][ids],
+                "rot": torch.from_numpy(rvecs[local]).float(), "trans": torch.from_numpy(tvecs[local]).float()}
+        out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], torch.ones(len(ids)), init,
+                                    {"shape", "texture", "lighting", "focal", "expression", "pose"},
+                                    int(fit.keyframe_iterations), int(fit.rigid_iterations))
+        for k in shared:
+            shared[k][ids] = out[k]
+        for k in result:
+            result[k][ids] = out[k]
+        fitted[ids] = True
+    return model, fitter, shared, result, fitted, idx, time.perf_counter() - start, hist
+
+
 @torch.no_grad()
 def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, found, masks):
     ids = np.nonzero(fitted)[0]
-    out, camera = fitter.render(shared["shape"], result["expression"][ids], result["pose"][ids], shared["texture"],
-                                shared["lighting"], shared["focal"], result["rot"][ids], result["trans"][ids])
+    per_image = shared["shape"].shape[0] > 1
+    pick = (lambda v: v[ids]) if per_image else (lambda v: v)  # noqa: E731
+    out, camera = fitter.render(pick(shared["shape"]), result["expression"][ids], result["pose"][ids],
+                                pick(shared["texture"]), pick(shared["lighting"]), pick(shared["focal"]),
+                                result["rot"][ids], result["trans"][ids])
     lm_err = np.linalg.norm(out.landmarks2d.numpy() - landmarks[ids], axis=-1)
     iod = np.linalg.norm(landmarks[ids, 36] - landmarks[ids, 45], axis=-1)
     m = torch.from_numpy(masks[ids, None]).float()
@@ -295,9 +324,10 @@ def main(cfg: DictConfig) -> None:
     out, camera, report = evaluate_fit(fitter, shared, result, fitted, images, np.nan_to_num(landmarks), found,
                                        masks)
     report.update({"frames": len(frames), "fitted": int(fitted.sum()), "keyframes": key.tolist(),
-                   "seconds": seconds, "focal_px": float(shared["focal"].exp()), "head_model": model.source})
+                   "seconds": seconds, "focal_px": float(shared["focal"].exp().mean()), "head_model": model.source,
+                   "mode": cfg.fit_rgb.mode})
     truth = cfg.preprocess.get("truth")
-    if truth and Path(truth).is_file():
+    if truth and Path(truth).is_file() and cfg.fit_rgb.mode == "video":
         report["truth"] = compare_with_truth(model, shared, result, fitted, truth)
     n = len(frames)
     K = np.zeros((n, 3, 3), np.float32)
@@ -305,15 +335,17 @@ def main(cfg: DictConfig) -> None:
     ids = np.nonzero(fitted)[0]
     K[ids], R[ids] = camera.K.numpy(), camera.R.numpy()
     with atomic_path(subject_dir / "fit_rgb.npz") as tmp:
-        np.savez(tmp, shape=shared["shape"][0].numpy(), texture=shared["texture"][0].numpy(),
-                 lighting=shared["lighting"][0].numpy(), expression=result["expression"].numpy(),
+        one = (lambda v: v.numpy()) if cfg.fit_rgb.mode == "images" else (lambda v: v[0].numpy())  # noqa: E731
+        np.savez(tmp, shape=one(shared["shape"]), texture=one(shared["texture"]),
+                 lighting=one(shared["lighting"]), expression=result["expression"].numpy(),
                  pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(), fitted=fitted, keyframes=key,
                  image_size=frames.shape[1])
     rendered = np.zeros_like(frames)
     rendered[ids] = (out.rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
     write_png(subject_dir / "fit_rgb_overlay.png", overlay_sheet(frames[ids], rendered[ids], landmarks[ids]))
     write_json(subject_dir / "fit_rgb.json", report)
-    log.info("RGB fit of %d frames in %.0fs: landmark error %.2f px (NME %.4f), photometric L1 %.4f%s", fitted.sum(),
+    log.info("RGB fit (%s mode) of %d frames in %.0fs: landmark error %.2f px (NME %.4f), photometric L1 %.4f%s",
+             cfg.fit_rgb.mode, fitted.sum(),
              seconds, report["landmark_error_px"], report["landmark_nme"], report["photometric_l1"],
              "; vs truth: shape %.2f mm, expression %.2f mm, jaw %.2f deg" % tuple(report["truth"].values())
              if "truth" in report else "")

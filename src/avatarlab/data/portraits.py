@@ -1,0 +1,92 @@
+"""The embedded stand-in for FFHQ: a folder of varied portraits of the head model.
+
+Each portrait has its own identity, expression, a small head pose, a hair cap coloured from a palette, a background
+(flat or gradient), lighting and colour variety and sensor noise - appearance the synthetic training generator does not
+have. The folder then goes through the same preprocessing and per-image RGB fit as real photographs would (a
+subject with `source: portraits`). Replace it by real images with `source: images`.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from PIL import Image
+
+from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.headmodel import load_head_model
+from avatarlab.headmodel.flame import clip_coefficients
+from avatarlab.headmodel.texture import default_lighting
+from avatarlab.io import atomic_path
+from avatarlab.render.camera import orbit_camera
+from avatarlab.render.head_renderer import HeadRenderer
+
+log = logging.getLogger(__name__)
+HAIR_COLOURS = np.array([[0.08, 0.06, 0.05], [0.25, 0.15, 0.08], [0.45, 0.3, 0.15], [0.75, 0.6, 0.35],
+                         [0.5, 0.5, 0.5], [0.55, 0.2, 0.08]])
+
+
+def hair_mask(model) -> torch.Tensor:
+    """Scalp vertices: above the forehead at the front, above the nape at the back."""
+    v = model.buffers_.v_template
+    head = model.regions["head"]
+    front = v[:, 2] > 0.03
+    return head & ((front & (v[:, 1] > 0.072)) | (~front & (v[:, 1] > -0.03)))
+
+
+@torch.no_grad()
+def render_portraits(cfg: DictConfig):
+    model = load_head_model(cfg.head_model)
+    count, size = int(cfg.scale.portraits), int(cfg.scale.video_size)
+    g = torch.Generator().manual_seed(int(cfg.seed) + 7)
+    params = model.zeros(count)
+    for name, std in (("shape", 1.0), ("expression", 0.7), ("texture", 1.0)):
+        params[name] = clip_coefficients(torch.randn(params[name].shape, generator=g) * std)
+    params["pose"][:, 3:6] = (torch.rand(count, 3, generator=g) - 0.5) * torch.tensor([0.4, 0.7, 0.3])
+    params["pose"][:, 6] = torch.rand(count, generator=g) * 0.25
+    lighting = default_lighting(count) * (0.8 + 0.4 * torch.rand(count, 1, 1, generator=g))
+    lighting[:, 1:4] += (torch.rand(count, 3, 3, generator=g) - 0.5) * 0.6
+    albedo = model.albedo(params["texture"])
+    hair = hair_mask(model)
+    colours = torch.from_numpy(HAIR_COLOURS).float()[torch.randint(0, len(HAIR_COLOURS), (count,), generator=g)]
+    albedo[:, hair] = colours[:, None] * (0.85 + 0.3 * torch.rand(count, int(hair.sum()), 1, generator=g))
+    camera = orbit_camera(1.0 + 0.1 * torch.randn(count, generator=g), 0.0, 0.0, target=(0.0, 0.0, 0.0),
+                          image_size=(size, size), batch=count, fov_height=0.36)
+    renderer = HeadRenderer(model, background=(0, 0, 0))
+    images = []
+    for start in range(0, count, 16):
+        s = slice(start, start + 16)
+        geo = model(params["shape"][s], params["expression"][s], params["pose"][s])
+        cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size)
+        out = renderer.mesh_renderer(geo.vertices, albedo[s], cam, lighting[s])
+        n = out.rgb.shape[0]
+        top, bottom = torch.rand(n, 3, 1, 1, generator=g), torch.rand(n, 3, 1, 1, generator=g)
+        ramp = torch.linspace(0, 1, size)[None, None, :, None]
+        background = top + (bottom - top) * ramp * (torch.rand(n, 1, 1, 1, generator=g) > 0.5)
+        rgb = out.rgb * out.mask + background * (1 - out.mask)
+        rgb = rgb + 0.015 * torch.randn(rgb.shape, generator=g)
+        images.append(rgb.clamp(0, 1))
+    images = torch.cat(images).permute(0, 2, 3, 1).numpy()
+    return (images * 255).round().astype(np.uint8), params, model.source
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    setup_run(cfg)
+    images, params, source = render_portraits(cfg)
+    out_dir = Path(cfg.subject.images_out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for i, image in enumerate(images):
+        with atomic_path(out_dir / f"{i:05d}.png") as tmp:
+            Image.fromarray(image).save(tmp, format="PNG")
+    with atomic_path(cfg.subject.truth_out) as tmp:
+        np.savez_compressed(tmp, **{k: v.numpy() for k, v in params.items()}, head_model=source)
+    log.info("%d portraits (stand-in for FFHQ) at %dx%d in %s", len(images), images.shape[2], images.shape[1],
+             out_dir)
+
+
+if __name__ == "__main__":
+    main()

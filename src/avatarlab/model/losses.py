@@ -1,0 +1,94 @@
+"""Training loss of the parametric head model (seed 002, eq. 8).
+
+L = w1 |(I_gt - I_pred) * mask|^2 / sum(mask) + w2 sum_j |phi_j(I_gt) - phi_j(I_pred)|^2 + sum_k w_k |v_k^offset|^2,
+k in {beta, theta, psi, tau, lambda}: learnable per-sample offsets of the fitted vectors (w_k = 0 for synthetic
+samples). phi_j are VGG16 feature maps when ImageNet weights are given by path; otherwise a documented stand-in
+(fixed random multi-scale convolutions - a texture/edge-sensitive feature loss, NOT VGG) is used and a warning says so.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+log = logging.getLogger(__name__)
+VGG_LAYERS = (3, 8, 15, 22)  # relu1_2, relu2_2, relu3_3, relu4_3
+_MEAN = torch.tensor([0.485, 0.456, 0.406])[None, :, None, None]
+_STD = torch.tensor([0.229, 0.224, 0.225])[None, :, None, None]
+
+
+class VGGFeatures(nn.Module):
+    def __init__(self, weights_path: str | Path):
+        super().__init__()
+        from torchvision.models import vgg16
+
+        path = Path(weights_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: VGG16 ImageNet weights not found")
+        net = vgg16()
+        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        self.features = net.features[: max(VGG_LAYERS) + 1].eval()
+        for p in self.parameters():
+            p.requires_grad_(False)
+        self.name = f"vgg16:{path.name}"
+
+    def forward(self, x):
+        x = (x - _MEAN.to(x)) / _STD.to(x)
+        out = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in VGG_LAYERS:
+                out.append(x)
+        return out
+
+
+class RandomConvFeatures(nn.Module):
+    """Stand-in for VGG when no ImageNet weights are given: fixed, seeded random conv pyramid (not a learned metric)."""
+
+    def __init__(self, seed: int = 0):
+        super().__init__()
+        g = torch.Generator().manual_seed(seed)
+        chans = [3, 16, 32, 64]
+        self.convs = nn.ModuleList()
+        for cin, cout in zip(chans[:-1], chans[1:]):
+            conv = nn.Conv2d(cin, cout, 3, padding=1)
+            with torch.no_grad():
+                conv.weight.copy_(torch.randn(conv.weight.shape, generator=g) / (cin * 9) ** 0.5)
+                conv.bias.zero_()
+            self.convs.append(conv)
+        for p in self.parameters():
+            p.requires_grad_(False)
+        self.name = "random-conv stand-in (no VGG weights given)"
+
+    def forward(self, x):
+        out = []
+        for i, conv in enumerate(self.convs):
+            x = F.relu(conv(x if i == 0 else F.avg_pool2d(x, 2)))
+            out.append(x)
+        return out
+
+
+def perceptual_network(vgg_weights: str | None) -> nn.Module:
+    if vgg_weights:
+        net = VGGFeatures(vgg_weights)
+        log.info("perceptual loss: VGG16 from %s", vgg_weights)
+        return net
+    log.warning("perceptual loss: no VGG16 weights given (model.vgg16_weights); using a fixed random-conv stand-in")
+    return RandomConvFeatures()
+
+
+def head_model_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, features: nn.Module,
+                    offsets: dict[str, torch.Tensor], offset_weights: dict[str, float], is_real: torch.Tensor,
+                    w_mse: float = 1.0, w_perceptual: float = 0.1) -> dict[str, torch.Tensor]:
+    """Eq. (8). pred/target (B,3,H,W), mask (B,1,H,W), offsets name -> (B, dim), is_real (B,) bool."""
+    terms = {"mse": w_mse * (((target - pred) * mask) ** 2).sum() / (3 * mask.sum()).clamp(min=1)}
+    fp, ft = features(pred), features(target)
+    terms["perceptual"] = w_perceptual * sum(((a - b) ** 2).mean() for a, b in zip(ft, fp))
+    real = is_real.float()
+    terms["offsets"] = sum(offset_weights.get(k, 0.0) * ((v**2).sum(-1) * real).sum() / real.sum().clamp(min=1)
+                           for k, v in offsets.items()) if offsets else torch.zeros(())
+    terms["total"] = terms["mse"] + terms["perceptual"] + terms["offsets"]
+    return terms

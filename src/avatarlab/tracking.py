@@ -1,0 +1,81 @@
+"""MLflow tracking: one SQLite store under results/ (or the server in MLFLOW_TRACKING_URI), tags on every run.
+
+The ./mlruns file store raises in MLflow >= 3.13, so the default is `sqlite:///<abs>/results/mlflow.db`. The database
+and experiments are created once (`python -m avatarlab.tracking init`, the workflow's first rule) before parallel jobs
+write to it. Child runs in other processes link to a parent with the `mlflow.parentRunId` tag.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def tracking_uri(results_dir: str | Path = "results") -> str:
+    uri = os.environ.get("MLFLOW_TRACKING_URI")
+    if uri:
+        return uri
+    return f"sqlite:///{Path(results_dir).resolve() / 'mlflow.db'}"
+
+
+def git_sha() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                              cwd=Path(__file__).resolve().parent).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def experiment_name(scale: str) -> str:
+    return f"avatarlab-{scale}"
+
+
+def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
+    import mlflow
+
+    Path(results_dir).mkdir(parents=True, exist_ok=True)
+    uri = tracking_uri(results_dir)
+    mlflow.set_tracking_uri(uri)
+    for scale in scales:
+        if mlflow.get_experiment_by_name(experiment_name(scale)) is None:
+            mlflow.create_experiment(experiment_name(scale))
+    return uri
+
+
+@contextlib.contextmanager
+def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, enabled: bool = True):
+    """An MLflow run with the standard tags; yields the mlflow module (or None when tracking is off)."""
+    if not enabled:
+        yield None
+        return
+    import mlflow
+
+    mlflow.set_tracking_uri(tracking_uri(cfg.paths.results))
+    mlflow.set_experiment(experiment_name(cfg.scale.name))
+    all_tags = {"stage": stage, "scale": cfg.scale.name, "git_sha": git_sha(), "head_model": cfg.head_model.kind}
+    all_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    with mlflow.start_run(run_name=run_name, tags=all_tags):
+        yield mlflow
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) >= 1 and argv[0] == "init":
+        results = argv[1] if len(argv) > 1 else "results"
+        marker = Path(argv[2]) if len(argv) > 2 else None
+        uri = init_store(results)
+        if marker:
+            marker.write_text(uri + "\n")
+        print(f"MLflow store ready: {uri}")
+        return 0
+    print("usage: python -m avatarlab.tracking init [results_dir] [marker_file]")
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Training: pretraining of the parametric head model and (later) per-subject fine-tuning."""
