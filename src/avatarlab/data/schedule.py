@@ -35,5 +35,6 @@ def scaled_schedule(strategy, alpha_iterations: int, beta_iterations: int) -> Sc
     M = round(strategy["M"] * scale_a)
     N = M + round((strategy["N"] - strategy["M"]) * scale_b)
     mouth = strategy.get("mouth_from")
-    return Schedule(M=M, N=N, p_min=float(strategy["p_min"]), p_max=float(strategy["p_max"]),
-                    mouth_from=None if mouth is None else round(mouth * scale_a))
+    if mouth is not None:  # keep at least one mouth-interior iteration however small the scale
+        mouth = min(round(mouth * scale_a), M - 1)
+    return Schedule(M=M, N=N, p_min=float(strategy["p_min"]), p_max=float(strategy["p_max"]), mouth_from=mouth)
