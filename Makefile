@@ -21,5 +21,8 @@ main: setup
 test: setup
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest
 
+dashboard: setup
+	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(abspath results)/mlflow.db --host 127.0.0.1 --port $${PORT:-5000}
+
 clean-results:
 	rm -rf results logs

@@ -3,7 +3,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 from PIL import Image
 
 from avatarlab.data.schedule import scaled_schedule, synthetic_probability

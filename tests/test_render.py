@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from avatarlab.headmodel.texture import default_lighting
-from avatarlab.render import MeshRenderer, orbit_camera, rasterize
+from avatarlab.render import orbit_camera, rasterize
 from avatarlab.render.camera import Camera, intrinsics, scale_intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
 

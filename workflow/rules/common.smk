@@ -8,19 +8,70 @@ RESULTS = f"results/{SCALE}"
 LOGS = f"logs/{SCALE}"
 
 
-def conf_files(*extra):
-    """The Hydra config files a step reads: declared as inputs so a config change reruns what depends on it."""
-    files = ["config.yaml", f"scale/{SCALE}.yaml", f"head_model/{HEAD_MODEL}.yaml", *extra]
-    return [str(REPO / "conf" / f) for f in files]
+def _compose(extra_overrides=()):
+    """The Hydra config this workflow's steps run with (scale, head model, user overrides)."""
+    from hydra import compose, initialize_config_dir
+
+    overrides = [f"scale={SCALE}", f"head_model={HEAD_MODEL}", *config.get("hydra_overrides", []), *extra_overrides]
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
 
 
-def source_files(*packages):
-    """The Python sources a step runs (Snakemake's code trigger covers only the rule's own text)."""
-    src = REPO / "src" / "avatarlab"
-    files = [src / "config.py", src / "io.py"]
-    for package in packages:
-        files += sorted((src / package).rglob("*.py"))
-    return [str(f) for f in files]
+_SETTINGS_CACHE = {}
+
+
+def settings(*sections, strategy=None):
+    """The resolved config sections a step reads, as YAML. Given as a rule's `params`, so that a change to exactly
+    these settings reruns the step (Snakemake's params trigger) and other edits of conf/ do not."""
+    from omegaconf import OmegaConf
+
+    key = (sections, strategy)
+    if key not in _SETTINGS_CACHE:
+        cfg = _compose([f"strategy={strategy}"] if strategy else [])
+        picked = {s: OmegaConf.to_container(cfg[s], resolve=False) if OmegaConf.is_config(cfg[s]) else cfg[s]
+                  for s in sections}
+        picked["scale"] = OmegaConf.to_container(cfg.scale, resolve=True)
+        _SETTINGS_CACHE[key] = OmegaConf.to_yaml(picked)
+    return _SETTINGS_CACHE[key]
+
+
+def module_sources(*modules):
+    """The avatarlab source files an entry module runs: itself and everything it imports from avatarlab,
+    transitively (found by parsing imports, not by importing). Declared as inputs, so editing one of them
+    reruns exactly the steps that run it (Snakemake's own code trigger covers only the rule's text)."""
+    import ast
+
+    src = REPO / "src"
+    seen, todo = set(), list(modules)
+    while todo:
+        name = todo.pop()
+        path = _module_path(src, name)
+        if name in seen or not path.is_file():
+            continue
+        seen.add(name)
+        parts = name.split(".")
+        package = name if path.name == "__init__.py" else ".".join(parts[:-1])
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                todo += [a.name for a in node.names if a.name.startswith("avatarlab")]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                if base.startswith("avatarlab"):
+                    todo.append(base)
+                    todo += [f"{base}.{a.name}" for a in node.names]
+        while len(parts) > 1:  # importing a.b.c runs a/__init__ and a/b/__init__
+            parts = parts[:-1]
+            todo.append(".".join(parts))
+    return sorted(str(_module_path(src, name)) for name in seen)
+
+
+def _module_path(src, name):
+    """a.b.c -> src/a/b/c.py, or src/a/b/c/__init__.py for a package."""
+    parts = name.split(".")
+    source = src.joinpath(*parts[:-1], parts[-1] + ".py")
+    return source if source.is_file() else src.joinpath(*parts, "__init__.py")
 
 
 def hydra_args(run_dir):
@@ -45,6 +96,7 @@ wildcard_constraints:
     alpha="|".join(ALPHAS),
     beta="|".join(BETAS),
     renderer="|".join(RENDERERS),
+    init="|".join(PRETRAINED),
 
 
 def subject_dir(subject):
@@ -91,6 +143,8 @@ def get_final_output():
     for subject in SYNTHETIC:
         outputs += [f"{subject_dir(subject)}/fit_rgbd.json"]
     outputs += pretrain_outputs()
+    # the final recipe of the dissertation: an avatar per subject fine-tuned from beta6 continued from alpha2
+    outputs += [f"{RESULTS}/avatars/{subject}/{config['final_recipe']}/metrics.json" for subject in SUBJECTS]
     return outputs
 
 
@@ -108,9 +162,11 @@ def real_set(name):
 PRETRAIN_INPUTS = dict(
     **real_set(REAL_IMAGES["name"]),
     tracking=TRACKING_READY,
-    conf=conf_files(*[f"strategy/{s}.yaml" for s in ALPHAS + BETAS]),
-    code=source_files("train", "model", "data", "headmodel", "render") + [str(REPO / "src/avatarlab/tracking.py")],
+    code=module_sources("avatarlab.train.pretrain"),
 )
+
+
+TRAIN_SETTINGS = ("seed", "head_model", "render", "model", "synthetic", "pretrain", "tracking")
 
 
 def pretrain_args(wc, name, strategy, out_dir, extra=()):

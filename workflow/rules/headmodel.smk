@@ -3,14 +3,14 @@
 
 rule render_demo:
     input:
-        conf=conf_files(),
-        code=source_files("headmodel", "render"),
+        code=module_sources("avatarlab.headmodel.render_demo"),
     output:
         grid=report(f"{RESULTS}/headmodel/render_grid.png", caption="../report/render_grid.rst",
                     category="Head model"),
     log:
         f"{LOGS}/headmodel/render_demo.log",
     params:
+        settings=lambda wc: settings("seed", "head_model", "render", "demo"),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/render_demo"),
     threads: 2
     conda:
@@ -21,8 +21,7 @@ rule render_demo:
 
 rule dlib_check:
     input:
-        conf=conf_files(),
-        code=source_files("headmodel", "render", "preprocess"),
+        code=module_sources("avatarlab.headmodel.dlib_check"),
     output:
         report=f"{RESULTS}/headmodel/dlib_check.json",
         overlay=report(f"{RESULTS}/headmodel/dlib_check_overlay.png", caption="../report/dlib_check.rst",
@@ -30,6 +29,7 @@ rule dlib_check:
     log:
         f"{LOGS}/headmodel/dlib_check.log",
     params:
+        settings=lambda wc: settings("seed", "head_model", "render", "dlib_check"),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/dlib_check"),
     threads: 2
     conda:

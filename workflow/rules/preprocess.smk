@@ -3,14 +3,14 @@
 
 rule synthesize_subject:
     input:
-        conf=conf_files(),
-        code=source_files("data", "headmodel", "render"),
+        code=module_sources("avatarlab.data.synthetic_subject"),
     output:
         video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
         truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
     log:
         f"{LOGS}/subjects/{{subject}}/synthesize.log",
     params:
+        settings=lambda wc: settings("seed", "head_model", "render", "subject"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
         preset=lambda wc: SUBJECTS[wc.subject].get("preset", "talking"),
         seed=lambda wc: SUBJECTS[wc.subject].get("seed", 0),
@@ -26,14 +26,14 @@ rule synthesize_subject:
 rule extract_frames:
     input:
         media=subject_inputs,
-        conf=conf_files(),
-        code=source_files("preprocess"),
+        code=module_sources("avatarlab.preprocess.frames"),
     output:
         frames=directory(f"{RESULTS}/subjects/{{subject}}/frames"),
         meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
     log:
         f"{LOGS}/subjects/{{subject}}/frames.log",
     params:
+        settings=lambda wc: settings("preprocess"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/frames"),
         subject=subject_args,
         inputs=lambda wc, input: "'preprocess.inputs=[" + ",".join(f'"{p}"' for p in input.media) + "]'",
@@ -49,14 +49,14 @@ rule detect_landmarks:
     input:
         meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
         truth=lambda wc: subject_truth(wc.subject),
-        conf=conf_files(),
-        code=source_files("preprocess"),
+        code=module_sources("avatarlab.preprocess.track_landmarks"),
     output:
         points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
         report=f"{RESULTS}/subjects/{{subject}}/landmarks.json",
     log:
         f"{LOGS}/subjects/{{subject}}/landmarks.log",
     params:
+        settings=lambda wc: settings("preprocess"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/landmarks"),
         subject=subject_args,
     threads: 2
@@ -70,14 +70,14 @@ rule segment_masks:
     input:
         points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
         truth=lambda wc: subject_truth(wc.subject),
-        conf=conf_files(),
-        code=source_files("preprocess"),
+        code=module_sources("avatarlab.preprocess.masks"),
     output:
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
         report=f"{RESULTS}/subjects/{{subject}}/masks.json",
     log:
         f"{LOGS}/subjects/{{subject}}/masks.log",
     params:
+        settings=lambda wc: settings("preprocess"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/masks"),
         subject=subject_args,
     threads: 2
@@ -92,8 +92,7 @@ rule fit_rgb:
         points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
         truth=lambda wc: subject_truth(wc.subject),
-        conf=conf_files(),
-        code=source_files("preprocess", "headmodel", "render"),
+        code=module_sources("avatarlab.preprocess.fit_rgb"),
     output:
         params=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
         report=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
@@ -102,6 +101,7 @@ rule fit_rgb:
     log:
         f"{LOGS}/subjects/{{subject}}/fit_rgb.log",
     params:
+        settings=lambda wc: settings("seed", "preprocess", "fit_rgb", "head_model", "render"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgb"),
         subject=subject_args,
     threads: 2
@@ -116,13 +116,13 @@ rule fit_rgbd:
         truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
         video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
         rgb=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
-        conf=conf_files(),
-        code=source_files("preprocess", "headmodel", "render"),
+        code=module_sources("avatarlab.preprocess.fit_rgbd"),
     output:
         report=f"{RESULTS}/subjects/{{subject}}/fit_rgbd.json",
     log:
         f"{LOGS}/subjects/{{subject}}/fit_rgbd.log",
     params:
+        settings=lambda wc: settings("seed", "preprocess", "fit_rgbd", "head_model"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgbd"),
         subject=subject_args,
     threads: 2
@@ -136,8 +136,7 @@ rule fit_rgbd:
 rule interpolate_frames:
     input:
         meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
-        conf=conf_files(),
-        code=source_files("preprocess"),
+        code=module_sources("avatarlab.preprocess.interp.run"),
     output:
         report=f"{RESULTS}/subjects/{{subject}}/interp.json",
         frames=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
@@ -146,6 +145,7 @@ rule interpolate_frames:
     log:
         f"{LOGS}/subjects/{{subject}}/interp.log",
     params:
+        settings=lambda wc: settings("seed", "preprocess", "interp"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/interp"),
         subject=subject_args,
     threads: 2

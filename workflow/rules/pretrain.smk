@@ -14,14 +14,14 @@ rule init_tracking:
 
 rule synthesize_portraits:
     input:
-        conf=conf_files(),
-        code=source_files("data", "headmodel", "render"),
+        code=module_sources("avatarlab.data.portraits"),
     output:
         images=directory(f"{RESULTS}/subjects/{{subject}}/input/images"),
         truth=f"{RESULTS}/subjects/{{subject}}/input/portraits_truth.npz",
     log:
         f"{LOGS}/subjects/{{subject}}/portraits.log",
     params:
+        settings=lambda wc: settings("seed", "head_model", "render", "subject"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
     threads: 2
     conda:
@@ -42,6 +42,7 @@ rule pretrain_alpha:
     log:
         f"{LOGS}/pretrain/{{alpha}}.log",
     params:
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.alpha),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.alpha}/.hydra"),
         run=lambda wc: pretrain_args(wc, wc.alpha, wc.alpha, f"{RESULTS}/pretrain/{wc.alpha}"),
     threads: 2
@@ -62,6 +63,7 @@ rule pretrain_beta:
     log:
         f"{LOGS}/pretrain/{{beta}}_from_{{alpha}}.log",
     params:
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.beta),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}/.hydra"),
         run=lambda wc, input: pretrain_args(wc, f"{wc.beta}_from_{wc.alpha}", wc.beta,
                                             f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}",
@@ -81,6 +83,7 @@ rule renderer_run:
     log:
         f"{LOGS}/pretrain/renderer_{{renderer}}.log",
     params:
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy="alpha1"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/renderer_{wc.renderer}/.hydra"),
         run=lambda wc: pretrain_args(wc, f"renderer_{wc.renderer}", "alpha1", f"{RESULTS}/pretrain/renderer_{wc.renderer}",
                                      [f"pretrain.renderer={wc.renderer}",
@@ -95,7 +98,7 @@ rule renderer_run:
 rule renderer_experiment:
     input:
         runs=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/metrics.json", renderer=RENDERERS),
-        code=source_files("evaluate"),
+        code=module_sources("avatarlab.evaluate.renderer_experiment"),
     output:
         report=f"{RESULTS}/report/renderer_experiment.json",
         figure=report(f"{RESULTS}/report/renderer_experiment.png", caption="../report/renderer_experiment.rst",
@@ -112,3 +115,31 @@ rule renderer_experiment:
 rule pretrain_all:
     input:
         pretrain_outputs(),
+
+
+rule finetune_avatar:
+    input:
+        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
+        tracking=TRACKING_READY,
+        code=module_sources("avatarlab.train.finetune"),
+    output:
+        model=f"{RESULTS}/avatars/{{subject}}/{{init}}/model.pt",
+        metrics=f"{RESULTS}/avatars/{{subject}}/{{init}}/metrics.json",
+        frames=report(f"{RESULTS}/avatars/{{subject}}/{{init}}/test_frames.png", caption="../report/avatar.rst",
+                      category="Avatars", subcategory="{subject}"),
+    log:
+        f"{LOGS}/avatars/{{subject}}/{{init}}.log",
+    params:
+        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS),
+        hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
+        subject=subject_args,
+        out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.train.finetune {params.hydra} threads={threads} {params.subject}"
+        " 'finetune.init_model={input.model}' 'finetune.init_name={wildcards.init}'"
+        " 'finetune.out_dir={params.out_dir}' > {log} 2>&1"

@@ -32,9 +32,10 @@ class SyntheticGenerator:
         c = self.cfg
         pick = torch.randint(0, self.real["shape"].shape[0], (n,), generator=g)
         noise = lambda t: t + (torch.rand(t.shape, generator=g) * 2 - 1) * float(c.coefficient_noise)  # noqa: E731
-        params = {"shape": clip_coefficients(noise(self.real["shape"][pick])),
+        keep = (lambda t: t) if c.get("fixed_identity") else noise  # fine-tuning: the subject's own shape/texture
+        params = {"shape": clip_coefficients(keep(self.real["shape"][pick])),
                   "expression": clip_coefficients(noise(self.real["expression"][pick])),
-                  "texture": clip_coefficients(noise(self.real["texture"][pick])),
+                  "texture": clip_coefficients(keep(self.real["texture"][pick])),
                   "pose": torch.zeros(n, 15)}
         deg = math.pi / 180
         for axis, limit in enumerate(c.neck_deg):

@@ -9,7 +9,6 @@ landmarks, masks, depth) goes beside it so every later step can be checked again
 from __future__ import annotations
 
 import logging
-import math
 
 import cv2
 import hydra

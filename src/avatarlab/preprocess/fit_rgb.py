@@ -17,7 +17,7 @@ import cv2
 import hydra
 import numpy as np
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import DictConfig
 
 from avatarlab.config import CONF_DIR, setup_run
@@ -26,6 +26,7 @@ from avatarlab.headmodel.flame import rodrigues
 from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.preprocess.frames import load_frame_stack
+from avatarlab.preprocess.track_landmarks import load_landmarks
 from avatarlab.render.camera import Camera, intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
 
@@ -315,8 +316,7 @@ def main(cfg: DictConfig) -> None:
     setup_run(cfg)
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
-    with np.load(subject_dir / "landmarks.npz") as lm:
-        landmarks, found = lm["points"], lm["found"]
+    landmarks, found = load_landmarks(subject_dir)
     with np.load(subject_dir / "masks.npz") as mk:
         masks = mk["masks"]
     model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks)

@@ -8,7 +8,6 @@ Frames are read with OpenCV, subsampled to a target fps, cropped with ONE square
 from __future__ import annotations
 
 import glob
-import json
 import logging
 import os
 import shutil
@@ -21,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.data.subject_files import load_frame_stack  # noqa: F401  (re-exported for the steps)
 from avatarlab.io import write_json
 
 log = logging.getLogger(__name__)
@@ -166,12 +166,6 @@ def crop_points(points: np.ndarray, meta: dict) -> np.ndarray:
     c = meta["crop"]
     scale = meta["size"] / c["side"]
     return (points - np.array([c["cx"] - c["side"] / 2, c["cy"] - c["side"] / 2])) * scale
-
-
-def load_frame_stack(subject_dir: Path) -> tuple[np.ndarray, dict]:
-    meta = json.loads((subject_dir / "frames.json").read_text())
-    frames = [cv2.cvtColor(cv2.imread(str(subject_dir / "frames" / f)), cv2.COLOR_BGR2RGB) for f in meta["files"]]
-    return np.stack(frames), meta
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.io import atomic_path, write_json
 from avatarlab.preprocess.frames import load_frame_stack
+from avatarlab.preprocess.track_landmarks import load_landmarks
 
 log = logging.getLogger(__name__)
 
@@ -94,8 +95,7 @@ def main(cfg: DictConfig) -> None:
     setup_run(cfg)
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
-    with np.load(subject_dir / "landmarks.npz") as lm:
-        points, found = lm["points"], lm["found"]
+    points, found = load_landmarks(subject_dir)
     method = METHODS[cfg.preprocess.mask.method]
     masks = np.zeros(frames.shape[:3], np.uint8)
     for i in tqdm(np.nonzero(found)[0], desc="masks", unit="frame", disable=None):

@@ -5,11 +5,9 @@ ground truth (synthetic subjects), the report gives the NME. Writes `landmarks.n
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
-import dlib
 import hydra
 import numpy as np
 from omegaconf import DictConfig
@@ -46,6 +44,12 @@ def track(frames: np.ndarray, upsample: int):
         found[i] = True
         previous = np.array([(det.left() + det.right()) / 2, (det.top() + det.bottom()) / 2])
     return points, boxes, found
+
+
+def load_landmarks(subject_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A subject's tracked landmarks (N, 68, 2) and the per-frame found flags (N,)."""
+    with np.load(Path(subject_dir) / "landmarks.npz") as lm:
+        return lm["points"], lm["found"]
 
 
 def truth_landmarks(truth_path: Path | None, meta: dict) -> np.ndarray | None:

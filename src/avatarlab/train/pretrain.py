@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.schedule import scaled_schedule
+from avatarlab.data.subject_files import load_frame_stack
 from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json, write_png
@@ -39,19 +40,23 @@ OFFSET_KEYS = ("shape", "pose", "expression", "texture", "lighting")
 class RealImageSet:
     """Frames, masks and per-image fits of a preprocessed image subject (the FFHQ stand-in or real photos)."""
 
-    def __init__(self, subject_dir: Path, image_size: int):
-        from avatarlab.preprocess.frames import load_frame_stack
-
+    def __init__(self, subject_dir: Path, image_size: int, indices=None):
         frames, _ = load_frame_stack(subject_dir)
         with np.load(subject_dir / "masks.npz") as m:
             masks = m["masks"]
         with np.load(subject_dir / "fit_rgb.npz") as f:
             fit = {k: f[k] for k in f.files}
-        keep = fit["fitted"]
+        keep = fit["fitted"].copy()
+        if indices is not None:  # e.g. the training split of a subject's video
+            chosen = np.zeros_like(keep)
+            chosen[np.asarray(indices, dtype=int)] = True
+            keep &= chosen
         if keep.sum() == 0:
             raise ValueError(f"{subject_dir}/fit_rgb.npz: no fitted image")
-        if fit["shape"].ndim != 2:
-            raise ValueError(f"{subject_dir}/fit_rgb.npz: not a per-image fit (run fit_rgb with mode=images)")
+        n = len(fit["fitted"])
+        for key in ("shape", "texture", "lighting"):  # a video fit shares these: one row per frame here
+            if fit[key].ndim == (1 if key != "lighting" else 2):
+                fit[key] = np.broadcast_to(fit[key], (n, *fit[key].shape)).copy()
         scale = image_size / frames.shape[1]
         self.images = F.interpolate(torch.from_numpy(frames[keep]).permute(0, 3, 1, 2).float() / 255,
                                     size=(image_size, image_size), mode="bilinear", align_corners=False)
@@ -88,7 +93,7 @@ def z_augment(images, masks, K, g: torch.Generator, low: float, high: float, p: 
 def codes(params: dict, lighting: torch.Tensor, offsets: dict | None = None):
     """geometry code = [shape, pose (neck, jaw, eyes), expression]; appearance code = [texture, lighting (27)]."""
     def get(k, v):
-        return v + offsets[k] if offsets is not None else v
+        return v + offsets[k] if offsets is not None and k in offsets else v
 
     geometry = torch.cat([get("shape", params["shape"]), get("pose", params["pose"][:, 3:]),
                           get("expression", params["expression"])], 1)
@@ -165,7 +170,7 @@ def train(cfg: DictConfig) -> dict:
     if pre.iterations is not None:  # e.g. the renderer experiment: a fixed budget of synthetic-only training
         schedule = type(schedule)(M=int(pre.iterations), N=int(pre.iterations), p_min=1.0, p_max=1.0, mouth_from=None)
     size = int(cfg.scale.pretrain_image_size)
-    real = RealImageSet(Path(pre.real_subject_dir), size)
+    real = RealImageSet(Path(pre.real_subject_dir), size, pre.get("real_indices"))
     background = tuple(cfg.render.background)
     synth = SyntheticGenerator(head, real.params, cfg.synthetic, size, background)
     synth_mouth = None
@@ -173,24 +178,29 @@ def train(cfg: DictConfig) -> dict:
         synth_mouth = SyntheticGenerator(load_head_model(mouth_cfg), real.params, cfg.synthetic, size, background)
     torch.manual_seed(int(cfg.seed))
     net = HeadNeRFModel(nerf_config(cfg, head), pre.renderer, int(cfg.scale.pretrain_feature_size))
-    offsets = torch.nn.ParameterDict({
-        "shape": torch.zeros(len(real), head.n_shape), "pose": torch.zeros(len(real), 12),
-        "expression": torch.zeros(len(real), head.n_expression), "texture": torch.zeros(len(real), head.n_texture),
-        "lighting": torch.zeros(len(real), 27)})
-    optim = torch.optim.Adam([{"params": net.parameters()}, {"params": offsets.parameters(), "lr": float(pre.offset_lr)}],
-                             lr=float(pre.lr))
+    fixed = set(pre.get("fixed_codes") or [])  # fine-tuning keeps the subject's shape and texture fixed
+    dims = {"shape": head.n_shape, "pose": 12, "expression": head.n_expression, "texture": head.n_texture,
+            "lighting": 27}
+    offsets = torch.nn.ParameterDict({k: torch.zeros(len(real), d) for k, d in dims.items() if k not in fixed})
+    for p in net.nerf.frozen_prefix(int(pre.get("freeze_layers") or 0)):
+        p.requires_grad_(False)
+    optim = torch.optim.Adam([{"params": [p for p in net.parameters() if p.requires_grad]},
+                              {"params": offsets.parameters(), "lr": float(pre.offset_lr)}], lr=float(pre.lr))
     features = perceptual_network(cfg.model.vgg16_weights)
     g = torch.Generator().manual_seed(int(cfg.seed))
     step, start_step = 0, 0
     history: list[dict] = []
-    if strat.init:  # a beta strategy continues its alpha model at iteration M
+    if strat.init or pre.get("finetune_iterations"):  # continue a pretrained model (beta, or fine-tuning)
         if not pre.init_model or not Path(pre.init_model).is_file():
             raise FileNotFoundError(f"{pre.init_model}: strategy {strat.name} continues a pretrained model "
                                     "(pretrain.init_model)")
         parent = torch.load(pre.init_model, map_location="cpu", weights_only=False)
         net.load_state_dict(parent["model"])
         step = start_step = int(parent["step"])
-        log.info("continuing %s from %s at iteration %d", strat.name, pre.init_model, step)
+        log.info("%s continues %s from iteration %d", pre.name or strat.name, pre.init_model, step)
+    if pre.get("finetune_iterations"):  # per-subject fine-tuning: synthetic share decays linearly to 0 (eq. 9)
+        schedule = type(schedule)(M=start_step, N=start_step + int(pre.finetune_iterations), p_min=0.0,
+                                  p_max=float(pre.finetune_p_max), mouth_from=None)
     checkpoint = out_dir / "checkpoint.pt"
     fp = fingerprint(cfg)
     if checkpoint.is_file():
@@ -206,7 +216,7 @@ def train(cfg: DictConfig) -> dict:
         else:
             log.warning("%s was written with other settings: starting afresh", checkpoint)
     batch_size = int(cfg.scale.pretrain_batch)
-    offset_w = {k: float(cfg.model.offset_weights[k]) for k in OFFSET_KEYS}
+    offset_w = {k: float(cfg.model.offset_weights[k]) for k in OFFSET_KEYS if k in offsets}
     t0 = time.perf_counter()
     while step < schedule.N:
         p = schedule.probability(step + 1)
@@ -236,7 +246,7 @@ def train(cfg: DictConfig) -> dict:
         lighting = torch.cat(lights)
         real_mask = torch.cat(is_real)
         batch_offsets = {k: torch.cat([torch.zeros(n_syn, offsets[k].shape[1]), offsets[k][real_idx]])
-                         for k in OFFSET_KEYS}
+                         for k in OFFSET_KEYS if k in offsets}
         geometry, appearance = codes(merged, lighting, batch_offsets)
         optim.zero_grad()
         pred = net(geometry, appearance, cams)
@@ -262,7 +272,7 @@ def train(cfg: DictConfig) -> dict:
     metrics, pred_c, target = evaluate_on_head_model(net, synth, int(pre.eval_samples), int(cfg.seed))
     return {"net": net, "history": history, "metrics": metrics, "seconds": seconds, "schedule": schedule,
             "step": step, "start_step": start_step, "samples": (pred_c, target), "perceptual": features.name,
-            "real_images": len(real)}
+            "real_images": len(real), "offsets": offsets, "real": real}
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
