@@ -35,6 +35,28 @@ def experiment_name(scale: str) -> str:
     return f"avatarlab-{scale}"
 
 
+def artifact_root(results_dir: str | Path = "results") -> str:
+    """Artifacts live beside the database (results/mlartifacts), never in a ./mlruns of whatever the cwd is."""
+    return (Path(results_dir).resolve() / "mlartifacts").as_uri()
+
+
+def ensure_experiment(name: str, results_dir: str | Path) -> str:
+    import mlflow
+
+    exp = mlflow.get_experiment_by_name(name)
+    if exp is not None:
+        return exp.experiment_id
+    try:
+        # experimentKind: the UI opens the experiment as model training (runs table), not as a GenAI app
+        return mlflow.create_experiment(name, artifact_location=artifact_root(results_dir),
+                                        tags={"mlflow.experimentKind": "custom_model_development"})
+    except Exception:  # another process created it between the two calls
+        exp = mlflow.get_experiment_by_name(name)
+        if exp is None:
+            raise
+        return exp.experiment_id
+
+
 def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
     import mlflow
 
@@ -42,8 +64,7 @@ def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> st
     uri = tracking_uri(results_dir)
     mlflow.set_tracking_uri(uri)
     for scale in scales:
-        if mlflow.get_experiment_by_name(experiment_name(scale)) is None:
-            mlflow.create_experiment(experiment_name(scale))
+        ensure_experiment(experiment_name(scale), results_dir)
     return uri
 
 
@@ -56,6 +77,7 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, enabled:
     import mlflow
 
     mlflow.set_tracking_uri(tracking_uri(cfg.paths.results))
+    ensure_experiment(experiment_name(cfg.scale.name), cfg.paths.results)
     mlflow.set_experiment(experiment_name(cfg.scale.name))
     all_tags = {"stage": stage, "scale": cfg.scale.name, "git_sha": git_sha(), "head_model": cfg.head_model.kind}
     all_tags.update({k: str(v) for k, v in (tags or {}).items()})
