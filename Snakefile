@@ -18,6 +18,8 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/headmodel.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/pretrain.smk"
+include: "workflow/rules/avatar.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

@@ -56,6 +56,8 @@ def test_smoke_run_produces_checked_outputs_and_reruns_nothing(workdir):
         assert avatar["iterations"] == 3 and avatar["test_frames"] == [9, 10, 11]
         assert avatar["test"]["all"]["psnr"] > 15 and avatar["test"]["all"]["lpips"] is None  # no backbone: missing
         assert avatar["test"]["mouth_open"]["frames"] == 2
+    check_avatars_and_report(workdir / "results" / "smoke")
+    assert not (workdir / "mlruns").exists(), "MLflow artifacts belong under results/, not ./mlruns"
     again = snakemake(workdir, "-n")
     assert "Nothing to be done" in again.stdout + again.stderr
     # a changed setting reruns the steps that read it
@@ -141,9 +143,60 @@ def check_pretraining(results: Path) -> None:
     runs = mlflow.search_runs(experiment_names=["avatarlab-smoke"], filter_string="tags.stage = 'pretrain'")
     assert len(runs) == 16
     finetune = mlflow.search_runs(experiment_names=["avatarlab-smoke"], filter_string="tags.stage = 'finetune'")
-    assert sorted(finetune["tags.subject"]) == ["synth_talk", "synth_turns"]
+    # 14 ablation avatars of synth_talk, the final one of synth_turns, interpolation variants b and c of both
+    assert sorted(finetune["tags.subject"]) == ["synth_talk"] * 16 + ["synth_turns"] * 3
+    assert set(finetune["tags.frames_variant"]) == {"a", "b", "c"} and "metrics.test_all_psnr" in finetune.columns
+    assert finetune["artifact_uri"].str.startswith((results / "mlartifacts").resolve().as_uri()).all()
     assert set(runs["tags.strategy"]) >= set(names) | {"renderer_proposed", "renderer_baseline"}
     assert set(runs["tags.scale"]) == {"smoke"} and "metrics.eval_psnr" in runs.columns
+
+
+def check_avatars_and_report(results: Path) -> None:
+    """The avatar experiments, the applications and the report, with numbers from the runs."""
+    import cv2
+
+    inits = ["alpha1", "alpha2"] + [f"beta{i}_from_{a}" for i in range(1, 7) for a in ("alpha1", "alpha2")]
+    psnr = {}
+    for init in inits:
+        run = json.loads((results / "avatars/synth_talk" / init / "metrics.json").read_text())
+        assert run["init"] == init and run["frames_variant"] == "a" and run["train_frames"] == 9
+        psnr[init] = run["test"]["all"]["psnr"]
+    assert len(set(round(v, 6) for v in psnr.values())) > 1, "different initialisations give different avatars"
+    for subject in ("synth_talk", "synth_turns"):
+        a, b, c = (json.loads((results / "avatars" / subject / f"beta6_from_alpha2{suffix}/metrics.json").read_text())
+                   for suffix in ("", "_framesb", "_framesc"))
+        assert b["frames_variant"] == "b" and all(i % 2 == 0 for i in b["train_indices"])
+        assert set(b["train_indices"]) < set(c["train_indices"]) and any(i % 2 for i in c["train_indices"])
+        assert set(c["train_indices"]) <= set(a["train_indices"]) | {i for i in range(1, 9, 2)}
+        assert a["test_frames"] == b["test_frames"] == c["test_frames"]
+        grid = np.asarray(Image.open(results / "apps" / subject / "novel_views.png"))
+        assert grid.shape == (5 * 64, 5 * 64, 3) and grid.std() > 10
+        tele = json.loads((results / "apps" / subject / "telepresence.json").read_text())
+        assert tele["values_per_frame"] == 12 + 50 + 6 and tele["bytes_per_frame"]["params_float16"] == 136
+        assert tele["jpeg_over_float16_ratio"] > 5 and tele["float16_render_psnr_db"] > 40
+    video = cv2.VideoCapture(str(results / "apps/synth_talk/reenact_synth_turns.mp4"))
+    count, width = int(video.get(cv2.CAP_PROP_FRAME_COUNT)), int(video.get(cv2.CAP_PROP_FRAME_WIDTH))
+    ok, frame = video.read()
+    video.release()
+    assert ok and count == 6 and width == 2 * 64 and frame.std() > 10
+    report = results / "report"
+    summary = json.loads((report / "summary.json").read_text())
+    assert summary["avatars"] == 19
+    assert summary["rows"]["beta_ablation"] == 13 and summary["rows"]["alpha1_vs_alpha2"] == 4
+    assert summary["rows"]["interpolation"] == 6 and summary["rows"]["table2_comparison"] == 5 + 2
+    assert {"time_vs_quality.png", "render_time_vs_quality.png", "synth_talk_novel_views.png",
+            "test_frames_synth_talk.png"} <= set(summary["figures"])
+    import csv
+
+    with open(report / "tables/table2_comparison.csv") as f:
+        rows = list(csv.DictReader(f))
+    published = {r["method"]: float(r["psnr"]) for r in rows if r["source"] == "published"}
+    assert published["proposed (dissertation)"] == 26.2867 and published["NHA"] == 25.1049
+    ours = [r for r in rows if r["source"] == "this run"]
+    assert {r["data"] for r in ours} == {"synth_talk, smoke", "synth_turns, smoke"}
+    assert all(r["lpips"] == "" for r in ours), "LPIPS without the backbone stays empty, never invented"
+    text = (report / "README.md").read_text()
+    assert "missing" in text and f"{psnr['alpha1']:.4f}" in text
 
 
 def test_steps_depend_on_exactly_the_code_they_import():

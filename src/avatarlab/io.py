@@ -47,3 +47,17 @@ def _json_default(value):
     if isinstance(value, np.ndarray):
         return value.tolist()
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_video(path: str | Path, frames_rgb: np.ndarray, fps: float) -> None:
+    """(N, H, W, 3) uint8 RGB frames -> an MP4 (mp4v) written atomically."""
+    import cv2
+
+    h, w = frames_rgb.shape[1:3]
+    with atomic_path(path) as tmp:
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        if not writer.isOpened():
+            raise RuntimeError(f"{path}: OpenCV cannot open an mp4v writer")
+        for frame in frames_rgb:
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        writer.release()

@@ -81,7 +81,22 @@ def hydra_args(run_dir):
     return " ".join(f"'{a}'" for a in args)
 
 
-SUBJECTS = config.get("subjects", {})
+def _available_subjects(subjects):
+    """Subjects marked `optional: true` whose path matches no file are left out (with a note), e.g. a real clip that
+    exists on one machine only."""
+    import glob
+    import sys
+
+    kept = {}
+    for name, spec in (subjects or {}).items():
+        if spec.get("optional") and spec.get("path") and not glob.glob(spec["path"]):
+            print(f"avatarlab: optional subject '{name}' skipped: nothing at {spec['path']}", file=sys.stderr)
+            continue
+        kept[name] = spec
+    return kept
+
+
+SUBJECTS = _available_subjects(config.get("subjects", {}))
 REAL_IMAGES = config["real_images"]
 ALL_SUBJECTS = {**SUBJECTS, REAL_IMAGES["name"]: REAL_IMAGES}
 SYNTHETIC = [name for name, s in SUBJECTS.items() if s["source"] == "synthetic"]
@@ -89,6 +104,11 @@ IMAGE_SETS = [name for name, s in ALL_SUBJECTS.items() if s["source"] in ("portr
 ALPHAS, BETAS, RENDERERS = config["alphas"], config["betas"], config["renderers"]
 PRETRAINED = ALPHAS + [f"{b}_from_{a}" for b in BETAS for a in ALPHAS]
 TRACKING_READY = "results/mlflow.ready"
+FINAL_RECIPE = config["final_recipe"]
+ABLATION_SUBJECTS = [s for s in config.get("ablation_subjects", []) if s in SUBJECTS]
+INTERP_SUBJECTS = [s for s in config.get("interp_subjects", []) if s in SUBJECTS]
+TRANSFERS = [(t["avatar"], t["source"]) for t in config.get("transfers", [])
+             if t["avatar"] in SUBJECTS and t["source"] in SUBJECTS]
 
 
 wildcard_constraints:
@@ -97,6 +117,8 @@ wildcard_constraints:
     beta="|".join(BETAS),
     renderer="|".join(RENDERERS),
     init="|".join(PRETRAINED),
+    source="|".join(ALL_SUBJECTS),
+    variant="b|c",
 
 
 def subject_dir(subject):
@@ -133,19 +155,31 @@ def subject_args(wildcards, input=None):
     return " ".join(f"'{a}'" for a in args)
 
 
-def get_final_output():
-    outputs = [
-        f"{RESULTS}/headmodel/render_grid.png",
-        f"{RESULTS}/headmodel/dlib_check.json",
-    ]
+def preprocessing_outputs():
+    outputs = [f"{RESULTS}/headmodel/render_grid.png", f"{RESULTS}/headmodel/dlib_check.json"]
     for subject in SUBJECTS:
         outputs += [f"{subject_dir(subject)}/fit_rgb.json", f"{subject_dir(subject)}/interp.json"]
     for subject in SYNTHETIC:
         outputs += [f"{subject_dir(subject)}/fit_rgbd.json"]
-    outputs += pretrain_outputs()
-    # the final recipe of the dissertation: an avatar per subject fine-tuned from beta6 continued from alpha2
-    outputs += [f"{RESULTS}/avatars/{subject}/{config['final_recipe']}/metrics.json" for subject in SUBJECTS]
     return outputs
+
+
+def avatar_outputs():
+    """Every subject's final-recipe avatar and its applications; the 14 initialisations for the ablation subjects;
+    the interpolation variants (b, c) for the interpolation subjects."""
+    outputs = []
+    for subject in SUBJECTS:
+        inits = PRETRAINED if subject in ABLATION_SUBJECTS else [FINAL_RECIPE]
+        outputs += [f"{RESULTS}/avatars/{subject}/{init}/metrics.json" for init in inits]
+        outputs += [f"{RESULTS}/apps/{subject}/novel_views.png", f"{RESULTS}/apps/{subject}/telepresence.json"]
+    for subject in INTERP_SUBJECTS:
+        outputs += [f"{RESULTS}/avatars/{subject}/{FINAL_RECIPE}_frames{v}/metrics.json" for v in ("b", "c")]
+    outputs += [f"{RESULTS}/apps/{avatar}/reenact_{source}.mp4" for avatar, source in TRANSFERS]
+    return outputs
+
+
+def get_final_output():
+    return preprocessing_outputs() + pretrain_outputs() + avatar_outputs() + [f"{RESULTS}/report/README.md"]
 
 
 def pretrain_outputs():

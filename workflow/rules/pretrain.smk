@@ -115,31 +115,3 @@ rule renderer_experiment:
 rule pretrain_all:
     input:
         pretrain_outputs(),
-
-
-rule finetune_avatar:
-    input:
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
-        tracking=TRACKING_READY,
-        code=module_sources("avatarlab.train.finetune"),
-    output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{init}}/model.pt",
-        metrics=f"{RESULTS}/avatars/{{subject}}/{{init}}/metrics.json",
-        frames=report(f"{RESULTS}/avatars/{{subject}}/{{init}}/test_frames.png", caption="../report/avatar.rst",
-                      category="Avatars", subcategory="{subject}"),
-    log:
-        f"{LOGS}/avatars/{{subject}}/{{init}}.log",
-    params:
-        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
-        subject=subject_args,
-        out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
-    threads: 2
-    conda:
-        "../envs/avatarlab.yaml"
-    shell:
-        "python -m avatarlab.train.finetune {params.hydra} threads={threads} {params.subject}"
-        " 'finetune.init_model={input.model}' 'finetune.init_name={wildcards.init}'"
-        " 'finetune.out_dir={params.out_dir}' > {log} 2>&1"

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 
-import cv2
 import hydra
 import numpy as np
 import torch
@@ -19,7 +18,7 @@ from omegaconf import DictConfig
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.texture import default_lighting
-from avatarlab.io import atomic_path
+from avatarlab.io import atomic_path, write_video
 from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 
@@ -114,17 +113,6 @@ def render_subject(cfg: DictConfig) -> dict:
         "landmarks2d": torch.cat(lms).numpy(), "masks": torch.cat(masks)[:, 0].numpy().astype(np.uint8),
         "depth": torch.cat(depth)[:, 0].numpy().astype(np.float32), "head_model": model.source,
     }
-
-
-def write_video(path, frames_rgb: np.ndarray, fps: float) -> None:
-    h, w = frames_rgb.shape[1:3]
-    with atomic_path(path) as tmp:
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        if not writer.isOpened():
-            raise RuntimeError(f"{path}: OpenCV cannot open an mp4v writer")
-        for frame in frames_rgb:
-            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-        writer.release()
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")

@@ -29,13 +29,25 @@ from avatarlab.train.pretrain import RealImageSet, codes, composite, train
 log = logging.getLogger(__name__)
 
 
-def split(n_frames: int, fitted: np.ndarray, test_frames: int):
-    """Train on the fitted frames before the last `test_frames`; test on the fitted frames among the last ones."""
+def split(n_frames: int, fitted: np.ndarray, test_frames: int, variant: str = "a", interpolated=()):
+    """Train on the fitted frames before the last `test_frames`; test on the fitted frames among the last ones.
+
+    Interpolation experiment (seed 002, 4.3): variant b keeps every second training frame (the even ones, as the
+    interpolation step's split does); c adds back the dropped ones that `interpolated` re-creates."""
+    if variant not in ("a", "b", "c"):
+        raise ValueError(f"finetune.frames_variant={variant!r}: expected a, b or c")
     test_frames = min(test_frames, n_frames // 2)
     idx = np.arange(n_frames)
-    train_idx = idx[(idx < n_frames - test_frames) & fitted]
-    test_idx = idx[(idx >= n_frames - test_frames) & fitted]
-    return train_idx, test_idx
+    in_train = idx < n_frames - test_frames
+    test_idx = idx[~in_train & fitted]
+    if variant == "a":
+        return idx[in_train & fitted], test_idx
+    kept = in_train & fitted & (idx % 2 == 0)
+    if variant == "c":
+        made = np.zeros(n_frames, bool)
+        made[np.asarray(list(interpolated), dtype=int)] = True
+        kept |= in_train & made
+    return idx[kept], test_idx
 
 
 def finetune_config(cfg: DictConfig, train_idx: np.ndarray) -> DictConfig:
@@ -90,12 +102,22 @@ def main(cfg: DictConfig) -> None:
     _, meta = load_frame_stack(subject_dir)
     with np.load(subject_dir / "fit_rgb.npz") as fit:
         fitted = fit["fitted"]
-    train_idx, test_idx = split(meta["count"], fitted, int(ft.test_frames))
+    variant, made = str(ft.frames_variant), []
+    if variant == "c":
+        if not Path(ft.interpolated).is_file():
+            raise FileNotFoundError(f"{ft.interpolated}: variant c needs the interpolation step's frames")
+        with np.load(ft.interpolated) as f:
+            made = f["indices"].tolist()
+    train_idx, test_idx = split(meta["count"], fitted, int(ft.test_frames), variant, made)
     if len(test_idx) == 0 or len(train_idx) == 0:
         raise ValueError(f"{subject_dir}: {meta['count']} frames leave no train/test split")
     run_cfg = finetune_config(cfg, train_idx)
-    tags = {"subject": cfg.subject.name, "init": ft.init_name, "renderer": cfg.pretrain.renderer}
-    with start_run(cfg, "finetune", f"{cfg.subject.name}/{ft.init_name}", tags, bool(cfg.tracking.enabled)) as mlf:
+    if variant == "c":
+        run_cfg.pretrain.real_interpolated = str(ft.interpolated)
+    tags = {"subject": cfg.subject.name, "init": ft.init_name, "renderer": cfg.pretrain.renderer,
+            "frames_variant": variant}
+    run_name = f"{cfg.subject.name}/{ft.init_name}" + ("" if variant == "a" else f"/frames_{variant}")
+    with start_run(cfg, "finetune", run_name, tags, bool(cfg.tracking.enabled)) as mlf:
         result = train(run_cfg)
         test = RealImageSet(subject_dir, int(cfg.scale.pretrain_image_size), test_idx.tolist())
         metrics, pred, target = evaluate_avatar(result["net"], test, int(ft.mouth_open_frames),
@@ -107,11 +129,15 @@ def main(cfg: DictConfig) -> None:
         grid = torch.cat([torch.cat(list(target[:6]), 2), torch.cat(list(pred[:6]), 2)], 1)
         write_png(out_dir / "test_frames.png", _u8(grid))
         new = [h for h in result["history"] if h["step"] > result["start_step"]]
-        report = {"subject": cfg.subject.name, "init": ft.init_name, "train_frames": len(train_idx),
+        report = {"subject": cfg.subject.name, "init": ft.init_name, "frames_variant": variant,
+                  "train_frames": len(train_idx), "train_indices": train_idx.tolist(),
                   "test_frames": test_idx.tolist(), "iterations": len(new), "train_seconds": result["seconds"],
                   "test": metrics, "lpips_backbone": ft.lpips_backbone, "history": new}
         write_json(out_dir / "metrics.json", report)
         if mlf is not None:
+            mlf.log_params({"init": ft.init_name, "subject": cfg.subject.name, "frames_variant": variant,
+                            "train_frames": len(train_idx), "test_frames": len(test_idx), "iterations": len(new),
+                            "image_size": cfg.scale.pretrain_image_size, "lpips_backbone": ft.lpips_backbone})
             for h in new:
                 mlf.log_metrics({k: h[k] for k in ("loss", "psnr", "p_synthetic")}, step=h["step"])
             for part in ("all", "mouth_open"):

@@ -40,12 +40,19 @@ OFFSET_KEYS = ("shape", "pose", "expression", "texture", "lighting")
 class RealImageSet:
     """Frames, masks and per-image fits of a preprocessed image subject (the FFHQ stand-in or real photos)."""
 
-    def __init__(self, subject_dir: Path, image_size: int, indices=None):
+    def __init__(self, subject_dir: Path, image_size: int, indices=None, interpolated: Path | None = None):
         frames, _ = load_frame_stack(subject_dir)
         with np.load(subject_dir / "masks.npz") as m:
             masks = m["masks"]
         with np.load(subject_dir / "fit_rgb.npz") as f:
             fit = {k: f[k] for k in f.files}
+        n = len(fit["fitted"])
+        for key in ("shape", "texture", "lighting"):  # a video fit shares these: one row per frame here
+            if fit[key].ndim == (1 if key != "lighting" else 2):
+                fit[key] = np.broadcast_to(fit[key], (n, *fit[key].shape)).copy()
+        if interpolated is not None:
+            frames, masks = frames.copy(), masks.copy()
+            replace_with_interpolated(frames, masks, fit, Path(interpolated))
         keep = fit["fitted"].copy()
         if indices is not None:  # e.g. the training split of a subject's video
             chosen = np.zeros_like(keep)
@@ -53,10 +60,6 @@ class RealImageSet:
             keep &= chosen
         if keep.sum() == 0:
             raise ValueError(f"{subject_dir}/fit_rgb.npz: no fitted image")
-        n = len(fit["fitted"])
-        for key in ("shape", "texture", "lighting"):  # a video fit shares these: one row per frame here
-            if fit[key].ndim == (1 if key != "lighting" else 2):
-                fit[key] = np.broadcast_to(fit[key], (n, *fit[key].shape)).copy()
         scale = image_size / frames.shape[1]
         self.images = F.interpolate(torch.from_numpy(frames[keep]).permute(0, 3, 1, 2).float() / 255,
                                     size=(image_size, image_size), mode="bilinear", align_corners=False)
@@ -73,6 +76,33 @@ class RealImageSet:
 
     def __len__(self):
         return self.images.shape[0]
+
+
+def replace_with_interpolated(frames: np.ndarray, masks: np.ndarray, fit: dict, path: Path) -> np.ndarray:
+    """Variant (c) of the interpolation experiment: the frames that variant (b) drops are re-created without looking
+    at them - the image by the frame interpolator (`interpolated.npz`), the mask as the mean of the two neighbours'
+    masks (their union), the fitted parameters and camera as the mean of the neighbours' (a real pipeline would fit
+    the new frame; the neighbours' mean is what is known without it). Modifies the arrays in place; returns the
+    indices replaced (those whose neighbours were both fitted)."""
+    with np.load(path) as f:
+        indices, images = f["indices"], f["frames"]
+    if images.shape[1:3] != frames.shape[1:3]:
+        raise ValueError(f"{path}: interpolated frames are {images.shape[1:3]}, the subject's frames {frames.shape[1:3]}")
+    done = []
+    for i, image in zip(indices.tolist(), images):
+        a, b = i - 1, i + 1
+        if a < 0 or b >= len(frames) or not (fit["fitted"][a] and fit["fitted"][b]):
+            fit["fitted"][i] = False
+            continue
+        frames[i] = image
+        masks[i] = np.maximum(masks[a], masks[b])
+        for key in ("shape", "expression", "pose", "texture", "lighting", "K", "t"):
+            fit[key][i] = (fit[key][a].astype(np.float64) + fit[key][b]) / 2
+        u, _, vt = np.linalg.svd((fit["R"][a].astype(np.float64) + fit["R"][b]) / 2)  # nearest rotation to the mean
+        fit["R"][i] = u @ vt
+        fit["fitted"][i] = True
+        done.append(i)
+    return np.asarray(done, dtype=int)
 
 
 def z_augment(images, masks, K, g: torch.Generator, low: float, high: float, p: float):
@@ -170,7 +200,7 @@ def train(cfg: DictConfig) -> dict:
     if pre.iterations is not None:  # e.g. the renderer experiment: a fixed budget of synthetic-only training
         schedule = type(schedule)(M=int(pre.iterations), N=int(pre.iterations), p_min=1.0, p_max=1.0, mouth_from=None)
     size = int(cfg.scale.pretrain_image_size)
-    real = RealImageSet(Path(pre.real_subject_dir), size, pre.get("real_indices"))
+    real = RealImageSet(Path(pre.real_subject_dir), size, pre.get("real_indices"), pre.get("real_interpolated"))
     background = tuple(cfg.render.background)
     synth = SyntheticGenerator(head, real.params, cfg.synthetic, size, background)
     synth_mouth = None

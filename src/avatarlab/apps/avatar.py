@@ -1,0 +1,92 @@
+"""A finished avatar: its fine-tuned model from `model.pt`, the subject's fitted frames, and rendering of any
+parameters and camera with it. Shared by the applications and the report."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from omegaconf import OmegaConf
+
+from avatarlab.headmodel import load_head_model
+from avatarlab.render.camera import Camera
+from avatarlab.train.pretrain import HeadNeRFModel, codes, nerf_config
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Avatar:
+    net: HeadNeRFModel
+    config: dict
+    image_size: int
+
+    @torch.no_grad()
+    def render(self, params: dict, camera: Camera, batch: int = 4) -> torch.Tensor:
+        """params: shape, expression, pose (B, 15), texture, lighting (B, 9, 3) -> images (B, 3, H, W) in [0, 1]."""
+        geometry, appearance = codes(params, params["lighting"])
+        out = []
+        for k in range(0, geometry.shape[0], batch):
+            s = slice(k, k + batch)
+            cam = Camera(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size)
+            out.append(self.net(geometry[s], appearance[s], cam, stratified=False).clamp(0, 1))
+        return torch.cat(out)
+
+
+def load_avatar(path: str | Path) -> Avatar:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no avatar model (run the fine-tuning step first)")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or "model" not in state or "config" not in state:
+        raise ValueError(f"{path}: not an avatarlab model checkpoint (needs 'model' and 'config')")
+    cfg = OmegaConf.create(state["config"])
+    head = load_head_model(cfg.head_model)
+    net = HeadNeRFModel(nerf_config(cfg, head), cfg.pretrain.renderer, int(cfg.scale.pretrain_feature_size))
+    net.load_state_dict(state["model"])
+    net.eval()
+    return Avatar(net, state["config"], int(cfg.scale.pretrain_image_size))
+
+
+def load_fit(subject_dir: str | Path, image_size: int) -> dict:
+    """A subject's per-frame fit (fit_rgb.npz) as tensors, shared vectors broadcast per frame, K for `image_size`."""
+    path = Path(subject_dir) / "fit_rgb.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the subject has no RGB fit")
+    with np.load(path) as f:
+        fit = {k: f[k] for k in f.files}
+    n = len(fit["fitted"])
+    for key in ("shape", "texture", "lighting"):
+        if fit[key].ndim == (1 if key != "lighting" else 2):
+            fit[key] = np.broadcast_to(fit[key], (n, *fit[key].shape)).copy()
+    K = torch.from_numpy(fit["K"]).float()
+    K[:, :2] *= image_size / float(fit["image_size"])
+    out = {k: torch.from_numpy(np.asarray(fit[k])).float() for k in ("shape", "expression", "pose", "texture",
+                                                                     "lighting", "R", "t")}
+    out["K"], out["fitted"], out["image_size"] = K, torch.from_numpy(fit["fitted"]).bool(), image_size
+    return out
+
+
+def select(fit: dict, idx) -> tuple[dict, Camera]:
+    """The parameters and camera of frames `idx` of a fit."""
+    idx = torch.as_tensor(idx, dtype=torch.long)
+    params = {k: fit[k][idx] for k in ("shape", "expression", "pose", "texture", "lighting")}
+    size = fit["image_size"]
+    return params, Camera(K=fit["K"][idx], R=fit["R"][idx], t=fit["t"][idx], image_size=(size, size))
+
+
+def orbit(camera: Camera, yaw_deg: float, pitch_deg: float = 0.0, dz: float = 0.0) -> Camera:
+    """A novel view: the same camera moved on a sphere about the model's origin (the head) and `dz` further away."""
+    angles = torch.tensor([[np.radians(pitch_deg), np.radians(yaw_deg), 0.0]], dtype=camera.R.dtype)
+    rot = axis_angle_to_rotation_matrix(angles[:, :1] * torch.tensor([[1.0, 0, 0]])) @ axis_angle_to_rotation_matrix(
+        angles[:, 1:2] * torch.tensor([[0, 1.0, 0]]))
+    t = camera.t + torch.tensor([0.0, 0.0, dz], dtype=camera.t.dtype)
+    return Camera(K=camera.K, R=camera.R @ rot, t=t, image_size=camera.image_size)
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """(B, 3, H, W) in [0, 1] -> (B, H, W, 3) uint8."""
+    return (images.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)

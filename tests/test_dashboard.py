@@ -1,0 +1,100 @@
+"""The metrics dashboard as a user opens it: `python -m avatarlab.dashboard` (make dashboard) over a store with
+avatar runs, looked at in headless Chromium - the runs table and the metrics of the compared runs."""
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.parse
+import urllib.request
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from PIL import Image
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def chromium(*args: str, timeout=120) -> subprocess.CompletedProcess:
+    return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                           "--virtual-time-budget=25000", *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory):
+    if CHROMIUM is None:
+        pytest.skip("Debian's chromium is not installed (`make test` installs it with apt-get where it can)")
+    from avatarlab.tracking import init_store, start_run
+
+    results = tmp_path_factory.mktemp("dash") / "results"
+    init_store(results)
+    cfg = OmegaConf.create({"paths": {"results": str(results)}, "scale": {"name": "smoke"},
+                            "head_model": {"kind": "procedural"}})
+    for k, init in enumerate(("alpha1", "alpha2", "beta6_from_alpha2")):
+        with start_run(cfg, "finetune", f"synth_talk/{init}", {"subject": "synth_talk", "init": init}) as mlf:
+            mlf.log_params({"init": init, "iterations": 150})
+            mlf.log_metrics({"test_all_psnr": 24.5 + k, "test_all_ssim": 0.81 + 0.01 * k, "train_seconds": 60.0})
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    server = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results),
+                               "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env=env)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(120):
+            try:
+                urllib.request.urlopen(base, timeout=2)
+                break
+            except OSError:
+                if server.poll() is not None:
+                    pytest.fail(f"dashboard exited: {server.stdout.read()[-2000:]}")
+                time.sleep(0.5)
+        else:
+            pytest.fail("dashboard did not answer within 60 s")
+        yield base, results
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def api(base: str, path: str, payload: dict | None = None) -> dict:
+    req = urllib.request.Request(base + path, data=json.dumps(payload).encode() if payload else None,
+                                 headers={"Content-Type": "application/json"})
+    return json.loads(urllib.request.urlopen(req, timeout=30).read())
+
+
+@pytest.mark.slow
+def test_dashboard_shows_the_runs_table_with_metrics(dashboard, tmp_path):
+    base, results = dashboard
+    exp = api(base, "/api/2.0/mlflow/experiments/get-by-name?experiment_name=avatarlab-smoke")["experiment"]
+    assert exp["artifact_location"].startswith((results / "mlartifacts").as_uri())
+    exp_id = exp["experiment_id"]
+    # the runs table, best PSNR first
+    url = f"{base}/#/experiments/{exp_id}/runs?orderByKey={urllib.parse.quote('metrics.`test_all_psnr`')}&orderByAsc=false"
+    shot = tmp_path / "runs_table.png"
+    chromium("--window-size=1600,900", f"--screenshot={shot}", url)
+    image = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert image.shape == (900, 1600) and image.std() > 8 and len(np.unique(image)) > 50, "a rendered page, not a blank one"
+    dom = chromium("--window-size=1600,900", "--dump-dom", url).stdout
+    for init in ("alpha1", "alpha2", "beta6_from_alpha2"):
+        assert f"synth_talk/{init}" in dom
+    assert dom.index("synth_talk/beta6_from_alpha2") < dom.index("synth_talk/alpha1"), "sorted by test PSNR"
+    # the compared runs with their metric columns
+    runs = api(base, "/api/2.0/mlflow/runs/search", {"experiment_ids": [exp_id]})["runs"]
+    ids = urllib.parse.quote(json.dumps([r["info"]["run_id"] for r in runs]))
+    compare = f"{base}/#/compare-runs?runs={ids}&experiments={urllib.parse.quote(json.dumps([exp_id]))}"
+    chromium("--window-size=1600,1400", f"--screenshot={tmp_path / 'compare.png'}", compare)
+    dom = chromium("--window-size=1600,1400", "--dump-dom", compare).stdout
+    for metric in ("test_all_psnr", "test_all_ssim", "train_seconds"):
+        assert metric in dom
+    assert "26.5" in dom and "24.5" in dom, "metric values appear in the table"
+    assert (tmp_path / "compare.png").stat().st_size > 20_000
