@@ -7,7 +7,7 @@ CORES ?= 2
 SCALE ?= tiny
 PORT ?= 5000
 
-.PHONY: main test setup browser dashboard clean-results
+.PHONY: main test setup system browser dashboard clean-results
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,13 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
+# Debian's espeak-ng: the voice of the synthetic speech corpus (speech-driven animation)
+system:
+	@command -v espeak-ng >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+	  { apt-get install -y -q espeak-ng >/dev/null 2>&1 || \
+	    { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q espeak-ng >/dev/null 2>&1; }; }; } || \
+	  echo "note: Debian espeak-ng is not installed; the speech steps will stop with that message"
+
 # Debian's chromium for the dashboard screenshot test (skipped, with the reason, where it cannot be installed)
 browser:
 	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
@@ -25,12 +32,12 @@ browser:
 	  echo "note: Debian chromium is not installed; the dashboard screenshot test will be skipped"
 
 # the whole reproduction at $(SCALE), then Snakemake's HTML report beside results/$(SCALE)/report/README.md
-main: setup
+main: setup system
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE)
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html
 
-test: setup browser
+test: setup system browser
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest
 
 dashboard: setup

@@ -19,6 +19,7 @@ include: "workflow/rules/headmodel.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/pretrain.smk"
 include: "workflow/rules/avatar.smk"
+include: "workflow/rules/speech.smk"
 include: "workflow/rules/report.smk"
 
 

@@ -199,6 +199,26 @@ def check_avatars_and_report(results: Path) -> None:
     assert all(r["lpips"] == "" for r in ours), "LPIPS without the backbone stays empty, never invented"
     text = (report / "README.md").read_text()
     assert "missing" in text and f"{psnr['alpha1']:.4f}" in text
+    check_speech(results, summary)
+
+
+def check_speech(results: Path, summary: dict) -> None:
+    """The speech corpus, the three models with their table rows, and the speaking avatar with its sound track."""
+    corpus = json.loads((results / "speech/corpus.json").read_text())
+    assert corpus["speakers"] == 4 and corpus["utterances"] == 12 and corpus["splits"]["test"] >= 1
+    for name in ("lstm_reg", "lstm_noreg", "window"):
+        run = json.loads((results / "speech" / name / "metrics.json").read_text())
+        assert 0 < run["test"]["lip_error_percent"] < 30 and run["test"]["latency_ms"] >= 130
+    assert summary["rows"]["speech"] == 4 + 3
+    speak = json.loads((results / "speech/speak_synth_talk.json").read_text())
+    assert speak["with_audio"] and abs(speak["frames"] - 25 * speak["audio_seconds"]) <= 1
+    import subprocess
+
+    import imageio_ffmpeg
+
+    probe = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-i", str(results / "speech/speak_synth_talk.mp4")],
+                           capture_output=True, text=True)
+    assert "Audio: aac" in probe.stderr and "Video:" in probe.stderr
 
 
 def test_steps_depend_on_exactly_the_code_they_import():

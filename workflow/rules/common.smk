@@ -119,6 +119,7 @@ wildcard_constraints:
     init="|".join(PRETRAINED),
     source="|".join(ALL_SUBJECTS),
     variant="b|c",
+    speech_model="lstm_reg|lstm_noreg|window",
 
 
 def subject_dir(subject):
@@ -178,8 +179,15 @@ def avatar_outputs():
     return outputs
 
 
+def speech_outputs():
+    """The three speech models (seed 000 with / without its regulariser, seed 001) and the speaking avatars."""
+    outputs = [f"{RESULTS}/speech/{m}/metrics.json" for m in ("lstm_reg", "lstm_noreg", "window")]
+    return outputs + [f"{RESULTS}/speech/speak_{s}.mp4" for s in config.get("speech_subjects", []) if s in SUBJECTS]
+
+
 def get_final_output():
-    return preprocessing_outputs() + pretrain_outputs() + avatar_outputs() + [f"{RESULTS}/report/README.md"]
+    return (preprocessing_outputs() + pretrain_outputs() + avatar_outputs() + speech_outputs()
+            + [f"{RESULTS}/report/README.md"])
 
 
 def pretrain_outputs():

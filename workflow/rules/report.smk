@@ -6,6 +6,7 @@ rule report_tables:
         preprocessing_outputs(),
         pretrain_outputs(),
         avatar_outputs(),
+        speech_outputs(),
         code=module_sources("avatarlab.evaluate.report"),
     output:
         index=report(f"{RESULTS}/report/README.md", caption="../report/report.rst", category="Report"),

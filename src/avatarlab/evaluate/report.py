@@ -39,6 +39,13 @@ PUBLISHED_TABLE2 = [
 PUBLISHED_SECONDS = {"NHA": 8 * 3600, "IMAvatar": 5 * 86400, "PointAvatar": 3600, "INSTA": 600,
                      "proposed (dissertation)": 600}
 PUBLISHED_INTERP_GAIN_DB = 0.17  # variant (c) over (b), section 4.3
+# Seed 000's table (GRID): latency and lip-landmark error normalised by the outer-eye distance.
+PUBLISHED_SPEECH = [
+    {"method": "NVIDIA (Karras et al. 2017)", "latency_ms": 260, "lip_error_iod": None},
+    {"method": "VisemeNet", "latency_ms": 950, "lip_error_iod": 2.5},
+    {"method": "seed 000, with regularisation", "latency_ms": 130, "lip_error_iod": 1.9},
+    {"method": "seed 000, without regularisation", "latency_ms": 130, "lip_error_iod": 2.1},
+]
 
 
 def fmt(value, digits: int = 4):
@@ -244,6 +251,28 @@ def applications_table(results: Path) -> Table:
     return table
 
 
+def speech_table(results: Path, scale: str) -> Table:
+    table = Table("speech", "Speech-driven animation (seed 000's table; seed 001's window model)",
+                  ["source", "method", "data", "latency_ms", "lip_error_iod", "compute_ms_per_step",
+                   "real_time_factor", "train_seconds"],
+                  "lip_error_iod: mean lip-landmark error / outer-eye distance, in percent (the published values "
+                  "are read as percent too). Published rows: GRID (34 speakers, 24/6/4 split). 'this run' rows: the "
+                  f"synthetic espeak-ng corpus at scale '{scale}', test speakers unseen in training; the window model "
+                  "(seed 001) is given the true phoneme labels, the others only audio.")
+    for row in PUBLISHED_SPEECH:
+        table.add(source="published", data="GRID", **row)
+    names = {"lstm_reg": "seed 000, with regularisation", "lstm_noreg": "seed 000, without regularisation",
+             "window": "seed 001 sliding window (phonemes in)"}
+    for key, label in names.items():
+        run = read_json(results / "speech" / key / "metrics.json")
+        if run:
+            t = run["test"]
+            table.add(source="this run", method=label, data=f"synthetic corpus, {scale}", latency_ms=t["latency_ms"],
+                      lip_error_iod=t["lip_error_percent"], compute_ms_per_step=t.get("compute_ms_per_step"),
+                      real_time_factor=t.get("real_time_factor"), train_seconds=run["train_seconds"])
+    return table
+
+
 def quality_figures(avatars: list[dict], final_recipe: str, folder: Path) -> list[Path]:
     """Figures 57-58: avatar quality vs creation (training) time and vs per-frame render time."""
     import matplotlib
@@ -309,7 +338,7 @@ def build(results: Path, out: Path, final_recipe: str, scale: str) -> dict:
     pre, renderer = pretraining_tables(results)
     tables = [preprocessing_table(results), pre, renderer, alpha_table(avatars), beta_table(avatars),
               interp_table(avatars, results), comparison_table(avatars, final_recipe, scale),
-              applications_table(results)]
+              applications_table(results), speech_table(results, scale)]
     for table in tables:
         table.write(tables_dir)
     figures = quality_figures(avatars, final_recipe, figures_dir) if avatars else []
@@ -319,6 +348,8 @@ def build(results: Path, out: Path, final_recipe: str, scale: str) -> dict:
                                        figures_dir / f"test_frames_{run['subject']}.png"))
     for path in sorted(results.glob("apps/*/*.png")):
         figures.append(copy_figure(path, figures_dir / f"{path.parent.name}_{path.name}"))
+    for path in sorted(results.glob("speech/speak_*.png")):
+        figures.append(copy_figure(path, figures_dir / path.name))
     figures += [copy_figure(results / "headmodel" / "render_grid.png", figures_dir / "head_model_sweeps.png"),
                 copy_figure(results / "report" / "renderer_experiment.png", figures_dir / "renderer_experiment.png")]
     figures = [f for f in figures if f is not None]

@@ -1,0 +1,92 @@
+"""The two speech animation models.
+
+Seed 000 (`AudioToVisemes`): per video frame a 250 ms window of 65 audio features -> a convolutional encoder with batch
+norm -> an LSTM over frames -> two heads: viseme weights a (softmax: on the simplex) and phoneme probabilities p.
+The landmarks are a fixed linear layer of the weights: l = Pr(B0) + sum_j a_j (Pr(B_j) - Pr(B0)).
+Seed 001 (`PhonemeWindowMLP`, Taylor et al. 2017): one-hot phonemes of k_x = 11 frames -> 3 tanh layers (3000 wide at
+paper scale) with dropout 0.5 -> k_y = 5 frames of the reference face's parameters; overlapping predictions of a frame
+are averaged.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class AudioToVisemes(nn.Module):
+    def __init__(self, n_features: int, n_visemes: int, n_phonemes: int, basis: torch.Tensor, channels: int = 64,
+                 hidden: int = 128):
+        super().__init__()
+        self.encoder = nn.Sequential(
+            nn.Conv1d(n_features, channels, 3, padding=1), nn.BatchNorm1d(channels), nn.ReLU(),
+            nn.Conv1d(channels, channels, 3, stride=2, padding=1), nn.BatchNorm1d(channels), nn.ReLU(),
+            nn.Conv1d(channels, channels, 3, stride=2, padding=1), nn.BatchNorm1d(channels), nn.ReLU(),
+            nn.AdaptiveAvgPool1d(1))
+        self.lstm = nn.LSTM(channels, hidden, batch_first=True)
+        self.visemes = nn.Linear(hidden, n_visemes)
+        self.phonemes = nn.Linear(hidden, n_phonemes)
+        self.register_buffer("basis", basis.reshape(basis.shape[0], -1))  # (n_visemes, 136): Pr(B_j), row 0 = B0
+        self.register_buffer("mean", torch.zeros(n_features))
+        self.register_buffer("std", torch.ones(n_features))
+
+    def forward(self, windows: torch.Tensor, state=None):
+        """windows (B, T, W, F) -> viseme weights (B, T, K), phoneme logits (B, T, P), landmarks (B, T, 68, 2)."""
+        b, t, w, f = windows.shape
+        x = ((windows - self.mean) / self.std).reshape(b * t, w, f).transpose(1, 2)
+        h = self.encoder(x).reshape(b, t, -1)
+        h, state = self.lstm(h, state)
+        weights = torch.softmax(self.visemes(h), -1)
+        return weights, self.phonemes(h), self.landmarks(weights), state
+
+    def landmarks(self, weights: torch.Tensor) -> torch.Tensor:
+        b0 = self.basis[0]
+        flat = b0 + weights @ (self.basis - b0)
+        return flat.reshape(*weights.shape[:-1], 68, 2)
+
+
+def speech_loss(weights, logits, landmarks, target_landmarks, target_phonemes, phoneme_to_viseme, lambda1, lambda2):
+    """L = L_land + lambda1 CE(phonemes) + lambda2 (1/T) sum_t sum_k a_tk (1 - p_tk), p_tk = P(viseme k) from the
+    phoneme probabilities: the weights may only use visemes the phoneme head finds likely (seed 000's regulariser)."""
+    land = ((landmarks - target_landmarks) ** 2).sum(-1).mean()
+    ce = nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), target_phonemes.reshape(-1))
+    p_vis = torch.softmax(logits, -1) @ phoneme_to_viseme
+    reg = (weights * (1 - p_vis)).sum(-1).mean()
+    total = land + lambda1 * ce + lambda2 * reg
+    return total, {"landmarks": float(land), "ce": float(ce), "reg": float(reg)}
+
+
+class PhonemeWindowMLP(nn.Module):
+    def __init__(self, n_phonemes: int, n_outputs: int, k_x: int = 11, k_y: int = 5, hidden: int = 3000,
+                 layers: int = 3, dropout: float = 0.5):
+        super().__init__()
+        self.k_x, self.k_y, self.n_outputs = k_x, k_y, n_outputs
+        dims = [k_x * n_phonemes] + [hidden] * layers
+        blocks = []
+        for a, b in zip(dims[:-1], dims[1:]):
+            blocks += [nn.Linear(a, b), nn.Tanh(), nn.Dropout(dropout)]
+        self.net = nn.Sequential(*blocks, nn.Linear(dims[-1], k_y * n_outputs))
+        self.n_phonemes = n_phonemes
+
+    def forward(self, one_hot_windows: torch.Tensor) -> torch.Tensor:
+        """(B, k_x, P) -> (B, k_y, D)."""
+        return self.net(one_hot_windows.flatten(1)).reshape(-1, self.k_y, self.n_outputs)
+
+    def windows(self, labels: torch.Tensor) -> torch.Tensor:
+        """(T,) phoneme ids -> (T, k_x, P) one-hot windows centred on every frame (edges padded with silence)."""
+        half = self.k_x // 2
+        padded = torch.cat([torch.zeros(half, dtype=labels.dtype), labels, torch.zeros(half, dtype=labels.dtype)])
+        idx = torch.arange(len(labels))[:, None] + torch.arange(self.k_x)[None]
+        return nn.functional.one_hot(padded[idx], self.n_phonemes).float()
+
+    @torch.no_grad()
+    def predict_sequence(self, labels: torch.Tensor) -> torch.Tensor:
+        """(T,) -> (T, D): every frame's prediction averaged over the k_y outputs that cover it."""
+        out = self(self.windows(labels))  # (T, k_y, D): output j of window t is frame t - k_y//2 + j
+        total = torch.zeros(len(labels), self.n_outputs)
+        count = torch.zeros(len(labels), 1)
+        for j in range(self.k_y):
+            frames = torch.arange(len(labels)) - self.k_y // 2 + j
+            ok = (frames >= 0) & (frames < len(labels))
+            total.index_add_(0, frames[ok], out[ok, j])
+            count.index_add_(0, frames[ok], torch.ones(int(ok.sum()), 1))
+        return total / count.clamp(min=1)

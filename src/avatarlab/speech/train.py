@@ -1,0 +1,240 @@
+"""Train and evaluate a speech animation model on the corpus (seed 000 with / without its regulariser, seed 001).
+
+Landmarks of every frame are first aligned to the neutral viseme shape Pr(B0) by a similarity Procrustes fit
+(Kabsch rotation + scale + shift) on the stable points (brows, nose, eyes), as seed 000 aligns video landmarks.
+Metric (seed 000): lip-landmark error normalised by the outer-eye distance ||l37 - l46|| (1-based), in percent,
+on the test speakers; latency = the look-ahead + compute per step; real-time factor = compute / audio time.
+`python -m avatarlab.speech.train speech.model=lstm speech.regularize=true speech.out_dir=...`
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.headmodel import load_head_model
+from avatarlab.io import atomic_path, write_json
+from avatarlab.speech.features import FeatureSpec, windows
+from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
+from avatarlab.speech.visemes import NAMES, PHONEMES, phoneme_to_viseme_matrix, viseme_basis
+from avatarlab.tracking import start_run
+
+log = logging.getLogger(__name__)
+STABLE = list(range(17, 48))  # brows, nose, eyes
+LIPS = list(range(48, 68))
+
+
+def align_to(points: np.ndarray, reference: np.ndarray, idx=STABLE) -> np.ndarray:
+    """Similarity-align each (68, 2) frame of `points` (T, 68, 2) to `reference` on `idx` (Umeyama / Kabsch)."""
+    out = np.empty_like(points)
+    ref = reference[idx]
+    mu_r = ref.mean(0)
+    for t, frame in enumerate(points):
+        src = frame[idx]
+        mu_s = src.mean(0)
+        a, b = src - mu_s, ref - mu_r
+        u, s, vt = np.linalg.svd(b.T @ a)
+        d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
+        rot = u @ d @ vt
+        scale = (s * np.diag(d)).sum() / (a ** 2).sum()
+        out[t] = scale * (frame - mu_s) @ rot.T + mu_r
+    return out
+
+
+def lip_error_percent(pred: np.ndarray, truth: np.ndarray) -> float:
+    iod = np.linalg.norm(truth[:, 36] - truth[:, 45], axis=1)
+    err = np.linalg.norm(pred[:, LIPS] - truth[:, LIPS], axis=2).mean(1) / iod
+    return float(100 * err.mean())
+
+
+class Corpus:
+    def __init__(self, path: Path, basis: np.ndarray, spec: FeatureSpec):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no speech corpus (rule speech_corpus)")
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+        self.labels = data["labels"]
+        self.landmarks = align_to(data["landmarks"], basis[0])
+        self.items = []
+        for k in range(len(data["item_split"])):
+            a0, an = int(data["item_audio_start"][k]), int(data["item_audio_len"][k])
+            f0, fn = int(data["item_frame_start"][k]), int(data["item_frames"][k])
+            self.items.append({"split": str(data["item_split"][k]), "speaker": int(data["item_speaker"][k]),
+                               "windows": windows(data["audio"][a0:a0 + an], int(data["sample_rate"]), fn, spec),
+                               "labels": self.labels[f0:f0 + fn], "landmarks": self.landmarks[f0:f0 + fn],
+                               "seconds": an / int(data["sample_rate"])})
+
+    def split(self, name: str) -> list[dict]:
+        return [i for i in self.items if i["split"] == name]
+
+
+def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool):
+    sp = cfg.speech
+    train_items = corpus.split("train")
+    feats = np.concatenate([i["windows"].reshape(-1, i["windows"].shape[-1]) for i in train_items])
+    model = AudioToVisemes(feats.shape[1], len(NAMES), len(PHONEMES), basis, int(cfg.scale.speech_channels),
+                           int(cfg.scale.speech_hidden))
+    model.mean.copy_(torch.from_numpy(feats.mean(0)))
+    model.std.copy_(torch.from_numpy(feats.std(0) + 1e-5))
+    optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr), weight_decay=float(sp.weight_decay))
+    plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optim, factor=0.5, patience=5)
+    m = phoneme_to_viseme_matrix()
+    rng = np.random.default_rng(int(cfg.seed))
+    chunk, batch = int(sp.chunk_frames), int(sp.batch)
+    lambda2 = float(sp.lambda2) if regularize else 0.0
+    history = []
+    for epoch in range(int(cfg.scale.speech_epochs)):
+        model.train()
+        order = rng.permutation(len(train_items))
+        for start in range(0, len(order), batch):
+            xs, ys, ps = [], [], []
+            for k in order[start:start + batch]:
+                item = train_items[k]
+                n = len(item["labels"])
+                s = int(rng.integers(0, max(1, n - chunk + 1)))
+                sl = slice(s, min(n, s + chunk))
+                pad = chunk - (sl.stop - sl.start)
+                w, lab, lm = item["windows"][sl], item["labels"][sl], item["landmarks"][sl]
+                if pad:
+                    w = np.concatenate([w, np.repeat(w[-1:], pad, 0)])
+                    lab = np.concatenate([lab, np.repeat(lab[-1:], pad)])
+                    lm = np.concatenate([lm, np.repeat(lm[-1:], pad, 0)])
+                xs.append(w), ys.append(lm), ps.append(lab)
+            x = torch.from_numpy(np.stack(xs))
+            weights, logits, landmarks, _ = model(x)
+            loss, parts = speech_loss(weights, logits, landmarks, torch.from_numpy(np.stack(ys)),
+                                      torch.from_numpy(np.stack(ps)), m, float(sp.lambda1), lambda2)
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+        val = evaluate_lstm(model, corpus.split("val"))
+        plateau.step(val["lip_error_percent"])
+        history.append({"epoch": epoch + 1, "loss": float(loss), **parts, "val_lip_error_percent":
+                        val["lip_error_percent"]})
+        log.info("epoch %d loss %.5f val lip error %.2f %% IOD", epoch + 1, float(loss), val["lip_error_percent"])
+    return model, history
+
+
+@torch.no_grad()
+def evaluate_lstm(model: AudioToVisemes, items: list[dict]) -> dict:
+    model.eval()
+    preds, truths, correct, total = [], [], 0, 0
+    for item in items:
+        weights, logits, landmarks, _ = model(torch.from_numpy(item["windows"])[None])
+        preds.append(landmarks[0].numpy())
+        truths.append(item["landmarks"])
+        correct += int((logits[0].argmax(-1).numpy() == item["labels"]).sum())
+        total += len(item["labels"])
+    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), np.concatenate(truths)),
+            "phoneme_accuracy": correct / max(total, 1)}
+
+
+@torch.no_grad()
+def streaming_cost(model: AudioToVisemes, item: dict) -> float:
+    """Seconds of compute per step when frames arrive one by one (LSTM state carried over)."""
+    model.eval()
+    state, x = None, torch.from_numpy(item["windows"])[None]
+    start = time.perf_counter()
+    for t in range(x.shape[1]):
+        *_, state = model(x[:, t:t + 1], state)
+    return (time.perf_counter() - start) / x.shape[1]
+
+
+def train_window(cfg, corpus: Corpus):
+    sp = cfg.speech
+    train_items = corpus.split("train")
+    flat = np.concatenate([i["landmarks"].reshape(len(i["landmarks"]), -1) for i in train_items])
+    mean = flat.mean(0)
+    _, sv, vt = np.linalg.svd(flat - mean, full_matrices=False)
+    n_pca = int(cfg.scale.speech_pca)
+    comps, sigma = vt[:n_pca], sv[:n_pca] / np.sqrt(len(flat) - 1)
+    model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.scale.speech_window_hidden))
+    optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr))
+    xs, ys = [], []
+    half = model.k_y // 2
+    for item in train_items:
+        labels = torch.from_numpy(item["labels"])
+        coef = (item["landmarks"].reshape(len(labels), -1) - mean) @ comps.T / sigma  # whitened targets
+        padded = np.concatenate([np.repeat(coef[:1], half, 0), coef, np.repeat(coef[-1:], half, 0)])
+        xs.append(model.windows(labels))
+        ys.append(np.stack([padded[t:t + model.k_y] for t in range(len(labels))]))
+    x, y = torch.cat(xs), torch.from_numpy(np.concatenate(ys)).float()
+    g = torch.Generator().manual_seed(int(cfg.seed))
+    history = []
+    for epoch in range(int(cfg.scale.speech_epochs)):
+        model.train()
+        perm = torch.randperm(len(x), generator=g)
+        for k in range(0, len(x), int(sp.window_batch)):
+            idx = perm[k:k + int(sp.window_batch)]
+            loss = ((model(x[idx]) - y[idx]) ** 2).mean()
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+        history.append({"epoch": epoch + 1, "loss": float(loss)})
+    pca = {"mean": mean, "components": comps, "sigma": sigma}
+    return model, pca, history
+
+
+def evaluate_window(model: PhonemeWindowMLP, pca: dict, items: list[dict]) -> dict:
+    model.eval()
+    preds, truths = [], []
+    for item in items:
+        coef = model.predict_sequence(torch.from_numpy(item["labels"])).numpy()
+        preds.append((pca["mean"] + (coef * pca["sigma"]) @ pca["components"]).reshape(-1, 68, 2))
+        truths.append(item["landmarks"])
+    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), np.concatenate(truths))}
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    setup_run(cfg)
+    sp = cfg.speech
+    head = load_head_model(cfg.head_model)
+    basis = viseme_basis(head)
+    spec = FeatureSpec(sample_rate=int(sp.sample_rate))
+    corpus = Corpus(Path(sp.corpus), basis.numpy(), spec)
+    out_dir = Path(sp.out_dir)
+    name = sp.model if sp.model == "window" else f"lstm_{'reg' if sp.regularize else 'noreg'}"
+    test = corpus.split("test")
+    start = time.perf_counter()
+    with start_run(cfg, "speech", name, {"speech_model": name}, bool(cfg.tracking.enabled)) as mlf:
+        if sp.model == "lstm":
+            model, history = train_lstm(cfg, corpus, basis, bool(sp.regularize))
+            seconds = time.perf_counter() - start
+            metrics = evaluate_lstm(model, test)
+            step = streaming_cost(model, test[0])
+            metrics.update({"compute_ms_per_step": 1000 * step, "lookahead_ms": spec.lookahead_ms,
+                            "latency_ms": spec.lookahead_ms + 1000 * step,
+                            "real_time_factor": step * 1000 / spec.hop_ms})
+            state = {"model": model.state_dict(), "kind": "lstm", "n_features": int(model.mean.shape[0]),
+                     "channels": int(cfg.scale.speech_channels), "hidden": int(cfg.scale.speech_hidden)}
+        elif sp.model == "window":
+            model, pca, history = train_window(cfg, corpus)
+            seconds = time.perf_counter() - start
+            metrics = evaluate_window(model, pca, test)
+            metrics.update({"lookahead_ms": 1000 * (int(sp.k_x) // 2) / 25.0,
+                            "latency_ms": 1000 * (int(sp.k_x) // 2) / 25.0, "input": "phoneme labels"})
+            state = {"model": model.state_dict(), "kind": "window", "pca": pca}
+        else:
+            raise ValueError(f"speech.model={sp.model!r}: expected lstm or window")
+        state["config"] = OmegaConf.to_container(cfg, resolve=True)
+        with atomic_path(out_dir / "model.pt") as tmp:
+            torch.save(state, tmp)
+        report = {"model": name, "train_seconds": seconds, "test": metrics, "history": history,
+                  "test_utterances": len(test), "train_utterances": len(corpus.split("train"))}
+        write_json(out_dir / "metrics.json", report)
+        if mlf is not None:
+            mlf.log_metrics({f"test_{k}": v for k, v in metrics.items() if isinstance(v, float)})
+            mlf.log_metric("train_seconds", seconds)
+    log.info("%s: test lip error %.2f %% IOD, latency %.0f ms (%.0fs training)", name,
+             metrics["lip_error_percent"], metrics["latency_ms"], seconds)
+
+
+if __name__ == "__main__":
+    main()

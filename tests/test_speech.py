@@ -1,0 +1,134 @@
+"""Speech-driven animation: features, espeak-ng timings, visemes, the models and their loss, alignment, metric."""
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from avatarlab.speech.features import FeatureSpec, frame_features, read_wav, windows, write_wav
+from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
+from avatarlab.speech.train import align_to, lip_error_percent
+from avatarlab.speech.visemes import NAMES, PHONEMES, mouth_features, normalise_phoneme, phoneme_to_viseme_matrix, \
+    viseme_basis, viseme_of
+
+from conftest import SHARED_DATA
+
+needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None,
+                                  reason="Debian's espeak-ng is not installed (`make test` installs it where it can)")
+
+
+def test_feature_windows_follow_seed_000():
+    rate = 25_000
+    t = np.arange(rate * 2) / rate
+    audio = 0.3 * np.sin(2 * np.pi * 440 * t) * (t > 1)  # silence, then a tone from 1 s on
+    feats = frame_features(audio.astype(np.float32))
+    assert feats.shape[1] == 13 + 26 + 26 == 65 and abs(len(feats) - 200) <= 2  # 10 ms steps
+    win = windows(audio.astype(np.float32), rate)
+    assert win.shape == (50, 25, 65)  # one 250 ms window per 40 ms video frame over 2 s
+    energy = win[:, -1, 13:39].mean(1)  # log filterbank of the newest analysis frame of each window
+    # the window of frame t ends 130 ms after t * 40 ms: the tone (at 1.0 s) shows from frame 22 on (0.88 + 0.13 s)
+    assert energy[23] - energy[20] > 5 and np.argmax(np.diff(energy)) in (21, 22)
+    centroids = win[:, -1, 39:]
+    assert ((centroids >= 0) & (centroids <= 1)).all()
+
+
+def test_wav_round_trip_and_bad_file(tmp_path):
+    audio = np.sin(np.linspace(0, 100, 8000)).astype(np.float32) * 0.5
+    write_wav(tmp_path / "a.wav", audio, 16000)
+    back, rate = read_wav(tmp_path / "a.wav")
+    assert rate == 16000 and np.abs(back - audio).max() < 1e-4
+    (tmp_path / "bad.wav").write_bytes(b"not a wav")
+    with pytest.raises(ValueError, match="bad.wav: not a PCM WAV"):
+        read_wav(tmp_path / "bad.wav")
+
+
+@needs_espeak
+def test_espeak_gives_phonemes_in_order_with_times():
+    from avatarlab.speech.tts import Espeak
+
+    utt = Espeak().synthesize("bin blue at f two now")
+    names = [normalise_phoneme(p) for p, _, _ in utt.phonemes]
+    assert names[:3] == ["b", "I", "n"] and "aU" in names
+    starts = [s for _, s, _ in utt.phonemes]
+    assert starts == sorted(starts) and utt.phonemes[-1][2] == pytest.approx(len(utt.audio) / utt.rate, abs=0.02)
+    assert [w for w, _ in utt.words] == ["bin", "blue", "at", "f", "two", "now"]
+
+
+def test_visemes_are_distinct_mouth_shapes(head_model):
+    assert viseme_of("p") == viseme_of("m") == "pbm" and viseme_of("u:") == "w" and viseme_of("_:") == "sil"
+    m = phoneme_to_viseme_matrix()
+    assert m.shape == (len(PHONEMES), len(NAMES)) and (m.sum(1) == 1).all()
+    basis = viseme_basis(head_model)
+    feats = mouth_features(basis) - mouth_features(basis)[0]  # width, upper lip, opening (mm) vs the neutral face
+    open_, pbm, w, spread = (feats[NAMES.index(n)] for n in ("open", "pbm", "w", "spread"))
+    assert open_[2] > 15 and pbm[2] < -2  # open jaw vs pressed lips
+    assert w[0] < -8 and spread[0] > 5  # rounded narrows, spread widens
+
+
+def test_lstm_model_loss_and_regulariser(head_model):
+    torch.manual_seed(0)
+    basis = viseme_basis(head_model)
+    model = AudioToVisemes(65, len(NAMES), len(PHONEMES), basis, channels=8, hidden=16)
+    weights, logits, landmarks, _ = model(torch.randn(2, 5, 25, 65))
+    assert weights.shape == (2, 5, len(NAMES)) and torch.allclose(weights.sum(-1), torch.ones(2, 5))
+    assert landmarks.shape == (2, 5, 68, 2)
+    one_hot = torch.zeros(1, 1, len(NAMES))
+    one_hot[..., NAMES.index("open")] = 1
+    assert torch.allclose(model.landmarks(one_hot)[0, 0], basis[NAMES.index("open")], atol=1e-6)
+    m = phoneme_to_viseme_matrix()
+    target = torch.full((2, 5), PHONEMES.index("a"))
+    # weights on the viseme the phoneme head believes in cost nothing in the regulariser, elsewhere they do
+    good_logits = torch.full((2, 5, len(PHONEMES)), -20.0)
+    good_logits[..., PHONEMES.index("a")] = 20
+    w_good = torch.zeros(2, 5, len(NAMES))
+    w_good[..., NAMES.index("open")] = 1
+    w_bad = torch.zeros(2, 5, len(NAMES))
+    w_bad[..., NAMES.index("pbm")] = 1
+    lm = model.landmarks(w_good)
+    _, good = speech_loss(w_good, good_logits, lm, lm, target, m, 0.1, 0.1)
+    _, bad = speech_loss(w_bad, good_logits, lm, lm, target, m, 0.1, 0.1)
+    assert good["reg"] == pytest.approx(0, abs=1e-6) and bad["reg"] == pytest.approx(1, abs=1e-6)
+
+
+def test_window_model_averages_overlapping_outputs():
+    model = PhonemeWindowMLP(n_phonemes=5, n_outputs=3, k_x=11, k_y=5, hidden=16, dropout=0.0)
+    labels = torch.tensor([0, 1, 2, 3, 4, 0, 1])
+    win = model.windows(labels)
+    assert win.shape == (7, 11, 5) and (win[0, :5].argmax(-1) == 0).all() and win[0, 5].argmax() == 0
+    assert win[3, 5].argmax() == 3  # the centre of window t is frame t
+    model.eval()
+    seq = model.predict_sequence(labels)
+    out = model(win).detach()
+    # output j of window t is frame t - 2 + j: frame 3 is output j of window 5 - j
+    expected = torch.stack([out[5 - j, j] for j in range(5)]).mean(0)
+    assert torch.allclose(seq[3], expected, atol=1e-6)
+
+
+def test_procrustes_alignment_and_lip_metric():
+    rng = np.random.default_rng(0)
+    ref = rng.normal(size=(68, 2))
+    ref[36], ref[45] = [-1, 0], [1, 0]
+    ang = np.radians(25)
+    rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    moved = 1.7 * ref @ rot.T + [3, -2]
+    aligned = align_to(moved[None], ref)[0]
+    assert np.abs(aligned - ref).max() < 1e-9
+    off = ref.copy()
+    off[48:68, 1] += 0.02  # lips 1 % of the eye distance (2) off
+    assert lip_error_percent(off[None], ref[None]) == pytest.approx(1.0)
+
+
+def test_grid_clip_has_audio_features():
+    clip = SHARED_DATA / "grid" / "bbaf2n.mpg"
+    if not clip.is_file():
+        pytest.skip(f"{clip} is absent")
+    import subprocess
+
+    import imageio_ffmpeg
+
+    proc = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-i", str(clip), "-f", "s16le",
+                           "-ac", "1", "-ar", "25000", "-"], capture_output=True, check=True)
+    audio = np.frombuffer(proc.stdout, np.int16).astype(np.float32) / 32768
+    assert abs(len(audio) / 25000 - 3.0) < 0.1
+    win = windows(audio, 25000, 75, FeatureSpec())
+    assert win.shape == (75, 25, 65) and np.isfinite(win).all()

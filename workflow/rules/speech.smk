@@ -1,0 +1,84 @@
+# Speech-driven animation (seeds 000 and 001): corpus -> models -> table rows -> audio -> avatar video.
+
+
+rule speech_corpus:
+    input:
+        code=module_sources("avatarlab.speech.corpus"),
+    output:
+        corpus=f"{RESULTS}/speech/corpus.npz",
+        summary=f"{RESULTS}/speech/corpus.json",
+    log:
+        f"{LOGS}/speech/corpus.log",
+    params:
+        settings=lambda wc: settings("seed", "head_model", "speech"),
+        hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/corpus"),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.speech.corpus {params.hydra} threads={threads} 'speech.corpus={output.corpus}' > {log} 2>&1"
+
+
+SPEECH_MODELS = {"lstm_reg": ["speech.model=lstm", "speech.regularize=true"],
+                 "lstm_noreg": ["speech.model=lstm", "speech.regularize=false"],
+                 "window": ["speech.model=window"]}
+
+
+rule speech_train:
+    input:
+        corpus=f"{RESULTS}/speech/corpus.npz",
+        tracking=TRACKING_READY,
+        code=module_sources("avatarlab.speech.train"),
+    output:
+        model=f"{RESULTS}/speech/{{speech_model}}/model.pt",
+        metrics=f"{RESULTS}/speech/{{speech_model}}/metrics.json",
+    log:
+        f"{LOGS}/speech/{{speech_model}}.log",
+    params:
+        settings=lambda wc: settings("seed", "head_model", "speech", "tracking"),
+        hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
+        run=lambda wc: " ".join(f"'{a}'" for a in SPEECH_MODELS[wc.speech_model]),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.speech.train {params.hydra} threads={threads} {params.run} 'speech.corpus={input.corpus}'"
+        " 'speech.out_dir={RESULTS}/speech/{wildcards.speech_model}' > {log} 2>&1"
+
+
+def speech_input_args():
+    """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
+    if config.get("speech_wav"):
+        return f"'speech.wav={config['speech_wav']}'"
+    return f"'speech.say={config.get('speech_text', 'bin blue at f two now')}'"
+
+
+rule speak:
+    input:
+        speech=f"{RESULTS}/speech/lstm_reg/model.pt",
+        avatar=lambda wc: final_avatar(wc.subject),
+        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        wav=[config["speech_wav"]] if config.get("speech_wav") else [],
+        code=module_sources("avatarlab.speech.animate"),
+    output:
+        video=report(f"{RESULTS}/speech/speak_{{subject}}.mp4", caption="../report/speak.rst", category="Speech"),
+        strip=f"{RESULTS}/speech/speak_{{subject}}.png",
+        meta=f"{RESULTS}/speech/speak_{{subject}}.json",
+    log:
+        f"{LOGS}/speech/speak_{{subject}}.log",
+    params:
+        settings=lambda wc: settings("speech", "apps"),
+        hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/speak_{wc.subject}"),
+        subject=subject_args,
+        audio=lambda wc: speech_input_args(),
+    threads: 2
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.speech.animate {params.hydra} threads={threads} {params.subject} {params.audio}"
+        " 'speech.animate_model={input.speech}' 'apps.avatar={input.avatar}' 'apps.out={output.video}' > {log} 2>&1"
+
+
+rule speech_all:
+    input:
+        speech_outputs(),
