@@ -12,7 +12,18 @@ from avatarlab.config import CONF_DIR
 from avatarlab.headmodel import HeadModel, ProceduralSpec, load_procedural_head
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def _shared_data() -> Path:
+    """The workplace's real test data: $AVATARLAB_SHARED_DATA, else ../shared/data beside the checkout, else
+    /work/shared/data (where a fresh clone elsewhere still finds it on this workplace)."""
+    for candidate in (os.environ.get("AVATARLAB_SHARED_DATA"), REPO.parent / "shared" / "data", "/work/shared/data"):
+        if candidate and Path(candidate).is_dir():
+            return Path(candidate)
+    return REPO.parent / "shared" / "data"
+
+
+SHARED_DATA = _shared_data()
 
 torch.set_num_threads(2)
 

@@ -15,8 +15,8 @@ from conftest import REPO, SHARED_DATA
 def snakemake(workdir: Path, *args: str, check=True) -> subprocess.CompletedProcess:
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
     cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
-           "--cores", "2", "--config", "scale=smoke", *args]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+           "--cores", "2", "--config", "scale=smoke", "threads_per_job=1", *args]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=2400)
     if check and proc.returncode != 0:
         pytest.fail(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     return proc

@@ -20,7 +20,7 @@ rule finetune_avatar:
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -50,7 +50,7 @@ rule finetune_interp_variant:
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}",
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -79,7 +79,7 @@ rule novel_views:
         settings=lambda wc: settings("apps"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/novel_views"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -105,7 +105,7 @@ rule reenact:
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/reenact_{wc.source}"),
         subject=subject_args,
         source_dir=lambda wc: subject_dir(wc.source),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -126,7 +126,7 @@ rule telepresence:
         settings=lambda wc: settings("apps"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/telepresence"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:

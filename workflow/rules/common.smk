@@ -5,6 +5,7 @@ REPO = Path(workflow.basedir)
 SCALE = config["scale"]
 HEAD_MODEL = config["head_model"]
 RESULTS = f"results/{SCALE}"
+THREADS = int(config.get("threads_per_job", 2))  # torch threads of a step; 1 lets --cores 2 run two steps at once
 LOGS = f"logs/{SCALE}"
 
 

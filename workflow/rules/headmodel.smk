@@ -12,7 +12,7 @@ rule render_demo:
     params:
         settings=lambda wc: settings("seed", "head_model", "render", "demo"),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/render_demo"),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -31,7 +31,7 @@ rule dlib_check:
     params:
         settings=lambda wc: settings("seed", "head_model", "render", "dlib_check"),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/dlib_check"),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:

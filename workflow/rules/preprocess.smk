@@ -14,7 +14,7 @@ rule synthesize_subject:
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
         preset=lambda wc: SUBJECTS[wc.subject].get("preset", "talking"),
         seed=lambda wc: SUBJECTS[wc.subject].get("seed", 0),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -37,7 +37,7 @@ rule extract_frames:
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/frames"),
         subject=subject_args,
         inputs=lambda wc, input: "'preprocess.inputs=[" + ",".join(f'"{p}"' for p in input.media) + "]'",
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -59,7 +59,7 @@ rule detect_landmarks:
         settings=lambda wc: settings("preprocess"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/landmarks"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -80,7 +80,7 @@ rule segment_masks:
         settings=lambda wc: settings("preprocess"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/masks"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -104,7 +104,7 @@ rule fit_rgb:
         settings=lambda wc: settings("seed", "preprocess", "fit_rgb", "head_model", "render"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgb"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -125,7 +125,7 @@ rule fit_rgbd:
         settings=lambda wc: settings("seed", "preprocess", "fit_rgbd", "head_model"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgbd"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -148,7 +148,7 @@ rule interpolate_frames:
         settings=lambda wc: settings("seed", "preprocess", "interp"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/interp"),
         subject=subject_args,
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:

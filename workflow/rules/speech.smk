@@ -12,7 +12,7 @@ rule speech_corpus:
     params:
         settings=lambda wc: settings("seed", "head_model", "speech"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/corpus"),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -38,7 +38,7 @@ rule speech_train:
         settings=lambda wc: settings("seed", "head_model", "speech", "tracking"),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
         run=lambda wc: " ".join(f"'{a}'" for a in SPEECH_MODELS[wc.speech_model]),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -71,7 +71,7 @@ rule speak:
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/speak_{wc.subject}"),
         subject=subject_args,
         audio=lambda wc: speech_input_args(),
-    threads: 2
+    threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
