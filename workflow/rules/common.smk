@@ -180,9 +180,20 @@ def avatar_outputs():
     return outputs
 
 
+def _grid_clips():
+    import glob
+
+    return sorted(glob.glob(config["grid_clips"])) if config.get("grid_clips") else []
+
+
+GRID_CLIPS = _grid_clips()
+
+
 def speech_outputs():
-    """The three speech models (seed 000 with / without its regulariser, seed 001) and the speaking avatars."""
+    """The three speech models (seed 000 with / without its regulariser, seed 001), the speaking avatars, and the
+    test on real GRID clips where they exist."""
     outputs = [f"{RESULTS}/speech/{m}/metrics.json" for m in ("lstm_reg", "lstm_noreg", "window")]
+    outputs += [f"{RESULTS}/speech/grid_eval.json"] if GRID_CLIPS else []
     return outputs + [f"{RESULTS}/speech/speak_{s}.mp4" for s in config.get("speech_subjects", []) if s in SUBJECTS]
 
 

@@ -79,6 +79,28 @@ rule speak:
         " 'speech.animate_model={input.speech}' 'apps.avatar={input.avatar}' 'apps.out={output.video}' > {log} 2>&1"
 
 
+rule speech_grid_eval:
+    """The seed-000 model (trained on the synthetic corpus) tested on real GRID clips, where they exist."""
+    input:
+        speech=f"{RESULTS}/speech/lstm_reg/model.pt",
+        clips=GRID_CLIPS,
+        code=module_sources("avatarlab.speech.grid"),
+    output:
+        report=f"{RESULTS}/speech/grid_eval.json",
+    log:
+        f"{LOGS}/speech/grid_eval.log",
+    params:
+        settings=lambda wc: settings("speech"),
+        hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/grid_eval"),
+        clips=config.get("grid_clips"),
+    threads: THREADS
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.speech.grid {params.hydra} threads={threads} 'speech.grid_clips={params.clips}'"
+        " 'speech.animate_model={input.speech}' 'apps.out={output.report}' > {log} 2>&1"
+
+
 rule speech_all:
     input:
         speech_outputs(),
