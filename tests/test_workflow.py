@@ -235,3 +235,18 @@ def test_steps_depend_on_exactly_the_code_they_import():
     pretrain = {Path(p).name for p in namespace["module_sources"]("avatarlab.train.pretrain")}
     assert {"cnerf.py", "renderer2d.py", "losses.py", "schedule.py", "synthetic.py", "tracking.py"} <= pretrain
     assert "fit_rgb.py" not in pretrain and "finetune.py" not in pretrain
+
+
+def test_steps_depend_on_exactly_the_scale_keys_they_use():
+    """A step's params carry only the scale keys its config sections and code use: a new or changed key elsewhere in
+    conf/scale reruns nothing else (workflow/rules/common.smk `settings`)."""
+    text = (REPO / "workflow/rules/common.smk").read_text()
+    namespace = {"REPO": REPO, "Path": Path, "config": {}, "SCALE": "tiny", "HEAD_MODEL": "procedural"}
+    exec(text[text.index("def _compose"):text.index("def hydra_args")], namespace)
+    settings = namespace["settings"]
+    landmarks = settings("preprocess", modules=("avatarlab.preprocess.track_landmarks",))
+    assert "crop_size: 128" in landmarks and "finetune_iterations" not in landmarks and "speech_" not in landmarks
+    finetune = settings("finetune", "model", modules=("avatarlab.train.finetune",))
+    assert "finetune_iterations: 150" in finetune and "nerf_width: 96" in finetune  # via ${scale.nerf_width}
+    assert "pretrain_batch: 4" in finetune  # read in the code (train.pretrain, imported by finetune)
+    assert "dlib_check_renders" not in finetune and "speech_epochs" not in finetune

@@ -16,7 +16,7 @@ rule finetune_avatar:
     log:
         f"{LOGS}/avatars/{{subject}}/{{init}}.log",
     params:
-        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS),
+        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS, modules=("avatarlab.train.finetune",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
@@ -46,7 +46,7 @@ rule finetune_interp_variant:
     log:
         f"{LOGS}/avatars/{{subject}}/{{init}}_frames{{variant}}.log",
     params:
-        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS),
+        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS, modules=("avatarlab.train.finetune",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}",
@@ -76,7 +76,7 @@ rule novel_views:
     log:
         f"{LOGS}/apps/{{subject}}/novel_views.log",
     params:
-        settings=lambda wc: settings("apps"),
+        settings=lambda wc: settings("apps", modules=("avatarlab.apps.novel_views",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/novel_views"),
         subject=subject_args,
     threads: THREADS
@@ -101,7 +101,7 @@ rule reenact:
     log:
         f"{LOGS}/apps/{{subject}}/reenact_{{source}}.log",
     params:
-        settings=lambda wc: settings("apps"),
+        settings=lambda wc: settings("apps", modules=("avatarlab.apps.reenact",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/reenact_{wc.source}"),
         subject=subject_args,
         source_dir=lambda wc: subject_dir(wc.source),
@@ -123,7 +123,7 @@ rule telepresence:
     log:
         f"{LOGS}/apps/{{subject}}/telepresence.log",
     params:
-        settings=lambda wc: settings("apps"),
+        settings=lambda wc: settings("apps", modules=("avatarlab.apps.telepresence",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/telepresence"),
         subject=subject_args,
     threads: THREADS

@@ -21,17 +21,25 @@ def _compose(extra_overrides=()):
 _SETTINGS_CACHE = {}
 
 
-def settings(*sections, strategy=None):
-    """The resolved config sections a step reads, as YAML. Given as a rule's `params`, so that a change to exactly
-    these settings reruns the step (Snakemake's params trigger) and other edits of conf/ do not."""
+def settings(*sections, strategy=None, modules=()):
+    """The resolved config a step reads, as YAML: its config sections, and of conf/scale only the keys it uses
+    (`${scale.key}` in those sections, `scale.key` in the code of `modules` and what they import). Given as a rule's
+    `params`, so that a change to exactly these settings reruns the step (Snakemake's params trigger); other edits
+    of conf/, a new scale key among them, do not."""
+    import re
+
     from omegaconf import OmegaConf
 
-    key = (sections, strategy)
+    key = (sections, strategy, modules)
     if key not in _SETTINGS_CACHE:
         cfg = _compose([f"strategy={strategy}"] if strategy else [])
         picked = {s: OmegaConf.to_container(cfg[s], resolve=False) if OmegaConf.is_config(cfg[s]) else cfg[s]
                   for s in sections}
-        picked["scale"] = OmegaConf.to_container(cfg.scale, resolve=True)
+        used = set(re.findall(r"\$\{scale\.(\w+)\}", OmegaConf.to_yaml(picked)))
+        for source in module_sources(*modules):
+            used |= set(re.findall(r"\bscale\.(\w+)", Path(source).read_text()))
+        scale = OmegaConf.to_container(cfg.scale, resolve=True)
+        picked["scale"] = {k: v for k, v in scale.items() if k in used or k == "name"}
         _SETTINGS_CACHE[key] = OmegaConf.to_yaml(picked)
     return _SETTINGS_CACHE[key]
 

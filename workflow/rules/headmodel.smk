@@ -10,7 +10,7 @@ rule render_demo:
     log:
         f"{LOGS}/headmodel/render_demo.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "render", "demo"),
+        settings=lambda wc: settings("seed", "head_model", "render", "demo", modules=("avatarlab.headmodel.render_demo",)),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/render_demo"),
     threads: THREADS
     conda:
@@ -29,7 +29,7 @@ rule dlib_check:
     log:
         f"{LOGS}/headmodel/dlib_check.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "render", "dlib_check"),
+        settings=lambda wc: settings("seed", "head_model", "render", "dlib_check", modules=("avatarlab.headmodel.dlib_check",)),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/dlib_check"),
     threads: THREADS
     conda:

@@ -10,7 +10,7 @@ rule synthesize_subject:
     log:
         f"{LOGS}/subjects/{{subject}}/synthesize.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "render", "subject"),
+        settings=lambda wc: settings("seed", "head_model", "render", "subject", modules=("avatarlab.data.synthetic_subject",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
         preset=lambda wc: SUBJECTS[wc.subject].get("preset", "talking"),
         seed=lambda wc: SUBJECTS[wc.subject].get("seed", 0),
@@ -33,7 +33,7 @@ rule extract_frames:
     log:
         f"{LOGS}/subjects/{{subject}}/frames.log",
     params:
-        settings=lambda wc: settings("preprocess"),
+        settings=lambda wc: settings("preprocess", modules=("avatarlab.preprocess.frames",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/frames"),
         subject=subject_args,
         inputs=lambda wc, input: "'preprocess.inputs=[" + ",".join(f'"{p}"' for p in input.media) + "]'",
@@ -56,7 +56,7 @@ rule detect_landmarks:
     log:
         f"{LOGS}/subjects/{{subject}}/landmarks.log",
     params:
-        settings=lambda wc: settings("preprocess"),
+        settings=lambda wc: settings("preprocess", modules=("avatarlab.preprocess.track_landmarks",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/landmarks"),
         subject=subject_args,
     threads: THREADS
@@ -77,7 +77,7 @@ rule segment_masks:
     log:
         f"{LOGS}/subjects/{{subject}}/masks.log",
     params:
-        settings=lambda wc: settings("preprocess"),
+        settings=lambda wc: settings("preprocess", modules=("avatarlab.preprocess.masks",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/masks"),
         subject=subject_args,
     threads: THREADS
@@ -101,7 +101,7 @@ rule fit_rgb:
     log:
         f"{LOGS}/subjects/{{subject}}/fit_rgb.log",
     params:
-        settings=lambda wc: settings("seed", "preprocess", "fit_rgb", "head_model", "render"),
+        settings=lambda wc: settings("seed", "preprocess", "fit_rgb", "head_model", "render", modules=("avatarlab.preprocess.fit_rgb",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgb"),
         subject=subject_args,
     threads: THREADS
@@ -122,7 +122,7 @@ rule fit_rgbd:
     log:
         f"{LOGS}/subjects/{{subject}}/fit_rgbd.log",
     params:
-        settings=lambda wc: settings("seed", "preprocess", "fit_rgbd", "head_model"),
+        settings=lambda wc: settings("seed", "preprocess", "fit_rgbd", "head_model", modules=("avatarlab.preprocess.fit_rgbd",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgbd"),
         subject=subject_args,
     threads: THREADS
@@ -145,7 +145,7 @@ rule interpolate_frames:
     log:
         f"{LOGS}/subjects/{{subject}}/interp.log",
     params:
-        settings=lambda wc: settings("seed", "preprocess", "interp"),
+        settings=lambda wc: settings("seed", "preprocess", "interp", modules=("avatarlab.preprocess.interp.run",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/interp"),
         subject=subject_args,
     threads: THREADS

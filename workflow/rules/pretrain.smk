@@ -21,7 +21,7 @@ rule synthesize_portraits:
     log:
         f"{LOGS}/subjects/{{subject}}/portraits.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "render", "subject"),
+        settings=lambda wc: settings("seed", "head_model", "render", "subject", modules=("avatarlab.data.portraits",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
     threads: THREADS
     conda:
@@ -42,7 +42,7 @@ rule pretrain_alpha:
     log:
         f"{LOGS}/pretrain/{{alpha}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.alpha),
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.alpha, modules=("avatarlab.train.pretrain",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.alpha}/.hydra"),
         run=lambda wc: pretrain_args(wc, wc.alpha, wc.alpha, f"{RESULTS}/pretrain/{wc.alpha}"),
     threads: THREADS
@@ -63,7 +63,7 @@ rule pretrain_beta:
     log:
         f"{LOGS}/pretrain/{{beta}}_from_{{alpha}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.beta),
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.beta, modules=("avatarlab.train.pretrain",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}/.hydra"),
         run=lambda wc, input: pretrain_args(wc, f"{wc.beta}_from_{wc.alpha}", wc.beta,
                                             f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}",
@@ -83,7 +83,7 @@ rule renderer_run:
     log:
         f"{LOGS}/pretrain/renderer_{{renderer}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy="alpha1"),
+        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy="alpha1", modules=("avatarlab.train.pretrain",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/renderer_{wc.renderer}/.hydra"),
         run=lambda wc: pretrain_args(wc, f"renderer_{wc.renderer}", "alpha1", f"{RESULTS}/pretrain/renderer_{wc.renderer}",
                                      [f"pretrain.renderer={wc.renderer}",

@@ -18,7 +18,7 @@ rule report_tables:
     log:
         f"{LOGS}/report/report.log",
     params:
-        settings=lambda wc: settings("report"),
+        settings=lambda wc: settings("report", modules=("avatarlab.evaluate.report",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/report/.hydra"),
         final=lambda wc: FINAL_RECIPE,
     conda:

@@ -10,7 +10,7 @@ rule speech_corpus:
     log:
         f"{LOGS}/speech/corpus.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "speech"),
+        settings=lambda wc: settings("seed", "head_model", "speech", modules=("avatarlab.speech.corpus",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/corpus"),
     threads: THREADS
     conda:
@@ -35,7 +35,7 @@ rule speech_train:
     log:
         f"{LOGS}/speech/{{speech_model}}.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "speech", "tracking"),
+        settings=lambda wc: settings("seed", "head_model", "speech", "tracking", modules=("avatarlab.speech.train",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
         run=lambda wc: " ".join(f"'{a}'" for a in SPEECH_MODELS[wc.speech_model]),
     threads: THREADS
@@ -67,7 +67,7 @@ rule speak:
     log:
         f"{LOGS}/speech/speak_{{subject}}.log",
     params:
-        settings=lambda wc: settings("speech", "apps"),
+        settings=lambda wc: settings("speech", "apps", modules=("avatarlab.speech.animate",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/speak_{wc.subject}"),
         subject=subject_args,
         audio=lambda wc: speech_input_args(),
@@ -90,7 +90,7 @@ rule speech_grid_eval:
     log:
         f"{LOGS}/speech/grid_eval.log",
     params:
-        settings=lambda wc: settings("speech"),
+        settings=lambda wc: settings("speech", modules=("avatarlab.speech.grid",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/grid_eval"),
         clips=config.get("grid_clips"),
     threads: THREADS
