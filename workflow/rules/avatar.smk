@@ -60,10 +60,6 @@ rule finetune_interp_variant:
         " 'finetune.out_dir={params.out_dir}' > {log} 2>&1"
 
 
-def final_avatar(subject):
-    return f"{RESULTS}/avatars/{subject}/{FINAL_RECIPE}/model.pt"
-
-
 rule novel_views:
     input:
         avatar=lambda wc: final_avatar(wc.subject),

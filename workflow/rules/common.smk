@@ -236,3 +236,20 @@ def pretrain_args(wc, name, strategy, out_dir, extra=()):
     args = [f"strategy={strategy}", f"pretrain.name={name}", f"pretrain.out_dir={out_dir}",
             f"pretrain.real_subject_dir={subject_dir(REAL_IMAGES['name'])}", *extra]
     return " ".join(f"'{a}'" for a in args)
+
+
+def final_avatar(subject):
+    """The final-recipe avatar of a subject (what the applications and speech use)."""
+    return f"{RESULTS}/avatars/{subject}/{FINAL_RECIPE}/model.pt"
+
+
+SPEECH_MODELS = {"lstm_reg": ["speech.model=lstm", "speech.regularize=true"],
+                 "lstm_noreg": ["speech.model=lstm", "speech.regularize=false"],
+                 "window": ["speech.model=window"]}
+
+
+def speech_input_args():
+    """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
+    if config.get("speech_wav"):
+        return f"'speech.wav={config['speech_wav']}'"
+    return f"'speech.say={config.get('speech_text', 'bin blue at f two now')}'"

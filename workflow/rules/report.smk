@@ -21,8 +21,9 @@ rule report_tables:
         settings=lambda wc: settings("report", modules=("avatarlab.evaluate.report",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/report/.hydra"),
         final=lambda wc: FINAL_RECIPE,
+        results=lambda wc, output: str(Path(output.summary).parent.parent),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.report {params.hydra} 'report.results_dir={RESULTS}'"
-        " 'report.out_dir={RESULTS}/report' 'report.final_recipe={params.final}' > {log} 2>&1"
+        "python -m avatarlab.evaluate.report {params.hydra} 'report.results_dir={params.results}'"
+        " 'report.out_dir={params.results}/report' 'report.final_recipe={params.final}' > {log} 2>&1"

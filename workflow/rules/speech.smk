@@ -19,11 +19,6 @@ rule speech_corpus:
         "python -m avatarlab.speech.corpus {params.hydra} threads={threads} 'speech.corpus={output.corpus}' > {log} 2>&1"
 
 
-SPEECH_MODELS = {"lstm_reg": ["speech.model=lstm", "speech.regularize=true"],
-                 "lstm_noreg": ["speech.model=lstm", "speech.regularize=false"],
-                 "window": ["speech.model=window"]}
-
-
 rule speech_train:
     input:
         corpus=f"{RESULTS}/speech/corpus.npz",
@@ -38,19 +33,13 @@ rule speech_train:
         settings=lambda wc: settings("seed", "head_model", "speech", "tracking", modules=("avatarlab.speech.train",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
         run=lambda wc: " ".join(f"'{a}'" for a in SPEECH_MODELS[wc.speech_model]),
+        out_dir=lambda wc: f"{RESULTS}/speech/{wc.speech_model}",
     threads: THREADS
     conda:
         "../envs/avatarlab.yaml"
     shell:
         "python -m avatarlab.speech.train {params.hydra} threads={threads} {params.run} 'speech.corpus={input.corpus}'"
-        " 'speech.out_dir={RESULTS}/speech/{wildcards.speech_model}' > {log} 2>&1"
-
-
-def speech_input_args():
-    """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
-    if config.get("speech_wav"):
-        return f"'speech.wav={config['speech_wav']}'"
-    return f"'speech.say={config.get('speech_text', 'bin blue at f two now')}'"
+        " 'speech.out_dir={params.out_dir}' > {log} 2>&1"
 
 
 rule speak:
