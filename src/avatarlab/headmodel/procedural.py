@@ -22,6 +22,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.spatial import cKDTree
 
 from avatarlab.headmodel.sources import HeadModelData, VertexAlbedo
+from avatarlab.io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -573,15 +574,13 @@ def load_procedural_head(spec: ProceduralSpec, cache_dir: str | Path | None = No
         except (OSError, KeyError, ValueError) as err:
             log.warning("head model cache %s unreadable (%s); rebuilding", path, err)
     data = build_procedural_head(spec)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
     arrays = {k: getattr(data, k) for k in ("v_template", "faces", "shapedirs", "exprdirs", "posedirs", "J_regressor",
                                             "parents", "lbs_weights", "lmk_faces_idx", "lmk_bary_coords")}
     arrays.update({"albedo_mean": data.albedo.mean, "albedo_basis": data.albedo.basis,
                    "source": np.array(data.source)})
     arrays.update({f"region_{k}": v for k, v in data.regions.items()})
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:  # a unique temporary name: parallel steps may build the same head at once
+        np.savez_compressed(tmp, **arrays)
     return data
 
 

@@ -24,8 +24,7 @@ from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import resample
 from avatarlab.speech.tts import Espeak
-from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, normalise_phoneme, viseme_of, \
-    viseme_parameters
+from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, normalise_phoneme, viseme_of, viseme_parameters
 
 log = logging.getLogger(__name__)
 

@@ -323,9 +323,9 @@ def main(cfg: DictConfig) -> None:
             for h in new:
                 mlf.log_metrics({k: h[k] for k in ("loss", "mse", "perceptual", "psnr", "p_synthetic")}, step=h["step"])
             mlf.log_metrics({f"eval_{k}": v for k, v in metrics.items()})
-        torch.save({"model": result["net"].state_dict(), "step": result["step"],
-                    "config": OmegaConf.to_container(cfg, resolve=True)}, out_dir / "model.tmp.pt")
-        (out_dir / "model.tmp.pt").replace(out_dir / "model.pt")
+        with atomic_path(out_dir / "model.pt") as tmp:
+            torch.save({"model": result["net"].state_dict(), "step": result["step"],
+                        "config": OmegaConf.to_container(cfg, resolve=True)}, tmp)
         pred, target = result["samples"]
         grid = torch.cat([torch.cat(list(target[:6]), 2), torch.cat(list(pred[:6]), 2)], 1)
         write_png(out_dir / "samples.png", (grid.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8))
