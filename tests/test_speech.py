@@ -164,3 +164,16 @@ def test_derived_alignment_matches_grids_own_on_the_clip_that_has_one():
     assert [w for w, _ in words] == [w for w, _ in truth]
     errors_ms = [1000 * abs(a - b) for (_, a), (_, b) in zip(words, truth)]
     assert np.mean(errors_ms) < 80, errors_ms  # measured: 32 ms
+
+
+def test_rig_retargeting_weights_follow_seed_001():
+    from avatarlab.speech.train import retarget
+
+    poses = np.zeros((4, 2, 3), np.float32)
+    poses[0, 0] = [1, 0, 0]  # +3 sigma of component 0
+    poses[0, 1] = [0, 1, 0]  # -3 sigma of component 0
+    poses[1, 0] = [0, 0, 1]
+    coef = np.array([[3.0, 0, 0, 0], [-1.5, 0, 0, 0], [0, 1.5, 0, 0], [0, -3, 0, 0]])
+    rig = retarget(coef, poses)
+    assert rig[0] == pytest.approx([1, 0, 0]) and rig[1] == pytest.approx([0, 0.5, 0])
+    assert rig[2] == pytest.approx([0, 0, 0.5]) and rig[3] == pytest.approx([0, 0, 0])  # -: pose 1,1 is zero here

@@ -2,6 +2,8 @@
 
 Landmarks of every frame are first aligned to the neutral viseme shape Pr(B0) by a similarity Procrustes fit
 (Kabsch rotation + scale + shift) on the stable points (brows, nose, eyes), as seed 000 aligns video landmarks.
+Seed 001's output is retargeted to the head model's rig (jaw + expression) through +-3 sigma reference poses of the
+first four components, w_k^u = max(p_k / (3 u sigma_k), 0) on the (whitened) component values.
 Metric (seed 000): lip-landmark error normalised by the outer-eye distance ||l37 - l46|| (1-based), in percent,
 on the test speakers; latency = the look-ahead + compute per step; real-time factor = compute / audio time.
 `python -m avatarlab.speech.train speech.model=lstm speech.regularize=true speech.out_dir=...`
@@ -22,7 +24,7 @@ from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
-from avatarlab.speech.visemes import NAMES, PHONEMES, phoneme_to_viseme_matrix, viseme_basis
+from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, phoneme_to_viseme_matrix, viseme_basis
 from avatarlab.tracking import start_run
 
 log = logging.getLogger(__name__)
@@ -191,6 +193,51 @@ def evaluate_window(model: PhonemeWindowMLP, pca: dict, items: list[dict]) -> di
     return {"lip_error_percent": lip_error_percent(np.concatenate(preds), np.concatenate(truths))}
 
 
+def rig_jacobian(head, components: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Frontal landmarks of the neutral head (68, 2) and their change per unit of [jaw, expression 0..n-1]."""
+    n = min(components, head.n_expression)
+    zero = torch.zeros(1, head.n_shape)
+    expr = torch.zeros(n + 2, head.n_expression)
+    expr[2:, :n] = torch.eye(n)
+    jaw = torch.zeros(n + 2)
+    jaw[1] = 0.05  # finite difference: the jaw is a rotation
+    with torch.no_grad():
+        lms = frontal_landmarks(head, zero, expr, jaw)
+    d = (lms[1:] - lms[:1]).reshape(n + 1, -1)
+    d[0] /= 0.05
+    return lms[0], d.T  # (136, n + 1)
+
+
+def reference_poses(head, pca: dict, basis0: np.ndarray, n_components: int = 4, ridge: float = 1e-4):
+    """Seed 001's retargeting: for the first components k and u = +-1, the head-model pose [jaw, expression] whose
+    landmarks best match the reference face's mean + 3 u sigma_k PC_k (least squares on the rig's Jacobian)."""
+    neutral, J = rig_jacobian(head)
+    poses = np.zeros((n_components, 2, J.shape[1]), np.float32)
+    A = J.numpy().astype(np.float64)
+    for k in range(n_components):
+        for ui, u in enumerate((1.0, -1.0)):
+            target = pca["mean"] + 3 * u * pca["sigma"][k] * pca["components"][k]
+            delta = target - pca["mean"]  # the component's motion, applied to the head's own neutral face
+            poses[k, ui] = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ delta)
+    return poses
+
+
+def retarget(coef: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Rig parameters from whitened component values: sum_k sum_u w_k^u R_k^u, w_k^u = max(p_k / (3 u), 0)."""
+    n = poses.shape[0]
+    w = np.stack([np.maximum(coef[:, :n] / 3.0, 0), np.maximum(-coef[:, :n] / 3.0, 0)], 2)  # (T, n, 2)
+    return np.einsum("tku,kup->tp", w, poses)
+
+
+def retargeted_landmarks(head, rig: np.ndarray) -> np.ndarray:
+    n = rig.shape[1] - 1
+    expr = torch.zeros(len(rig), head.n_expression)
+    expr[:, :n] = torch.from_numpy(rig[:, 1:]).float()
+    with torch.no_grad():
+        return frontal_landmarks(head, torch.zeros(1, head.n_shape), expr,
+                                 torch.from_numpy(rig[:, 0]).float()).numpy()
+
+
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     setup_run(cfg)
@@ -218,6 +265,17 @@ def main(cfg: DictConfig) -> None:
             model, pca, history = train_window(cfg, corpus)
             seconds = time.perf_counter() - start
             metrics = evaluate_window(model, pca, test)
+            # retarget the predicted reference-face motion onto the head model's rig and measure what survives
+            poses = reference_poses(head, pca, basis[0].numpy())
+            preds, truths = [], []
+            for item in test:
+                coef = model.predict_sequence(torch.from_numpy(item["labels"])).numpy()
+                moved = retargeted_landmarks(head, retarget(coef, poses))
+                # the rig carries the mean head's face, the truth the speaker's: compare motion, not identity
+                preds.append(moved + (item["landmarks"] - moved).mean(0, keepdims=True))
+                truths.append(item["landmarks"])
+            metrics["retargeted_lip_error_percent"] = lip_error_percent(np.concatenate(preds), np.concatenate(truths))
+            pca["reference_poses"] = poses
             metrics.update({"lookahead_ms": 1000 * (int(sp.k_x) // 2) / 25.0,
                             "latency_ms": 1000 * (int(sp.k_x) // 2) / 25.0, "input": "phoneme labels"})
             state = {"model": model.state_dict(), "kind": "window", "pca": pca}
