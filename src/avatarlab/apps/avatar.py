@@ -70,6 +70,12 @@ def load_fit(subject_dir: str | Path, image_size: int) -> dict:
     return out
 
 
+def open_avatar(apps) -> tuple[Avatar, dict]:
+    """The avatar of an `apps` config section and its subject's fit at the avatar's image size."""
+    avatar = load_avatar(apps.avatar)
+    return avatar, load_fit(apps.subject_dir, avatar.image_size)
+
+
 def select(fit: dict, idx) -> tuple[dict, Camera]:
     """The parameters and camera of frames `idx` of a fit."""
     idx = torch.as_tensor(idx, dtype=torch.long)

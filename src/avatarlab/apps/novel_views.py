@@ -15,55 +15,47 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatarlab.apps.avatar import load_avatar, load_fit, orbit, select, to_uint8
+from avatarlab.apps.avatar import open_avatar, orbit, select, to_uint8
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.io import write_json, write_png
 
 log = logging.getLogger(__name__)
 
 
+def stack_cameras(cameras: list) -> object:
+    first = cameras[0]
+    return type(first)(K=torch.cat([c.K for c in cameras]), R=torch.cat([c.R for c in cameras]),
+                       t=torch.cat([c.t for c in cameras]), image_size=first.image_size)
+
+
 def sweeps(avatar, fit: dict, frame: int, cfg) -> tuple[list[np.ndarray], dict]:
     params, camera = select(fit, [frame])
-    rows, labels = [], {}
-    values = list(cfg.yaw_deg)
-    n = len(values)
+    n = len(cfg.yaw_deg)
+    base = {k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in params.items()}
+    base_cam = stack_cameras([camera] * n)
 
-    def repeat(p, cam):
-        return ({k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in p.items()},
-                type(cam)(K=cam.K.repeat(n, 1, 1), R=cam.R.repeat(n, 1, 1), t=cam.t.repeat(n, 1), image_size=cam.image_size))
+    def vary(key: str, column: int, values) -> torch.Tensor:
+        changed = {k: v.clone() for k, v in base.items()}
+        changed[key][:, column] = torch.tensor(list(values), dtype=torch.float32)[:n]
+        return avatar.render(changed, base_cam)
 
-    base_p, base_c = repeat(params, camera)
-    views = [orbit(camera, yaw) for yaw in values]
-    cams = type(camera)(K=torch.cat([v.K for v in views]), R=torch.cat([v.R for v in views]),
-                        t=torch.cat([v.t for v in views]), image_size=camera.image_size)
-    rows.append(avatar.render(base_p, cams))
-    labels["novel_view_yaw_deg"] = values
-    neck = {k: v.clone() for k, v in base_p.items()}
-    neck["pose"][:, 4] = torch.tensor(np.radians(list(cfg.neck_deg)), dtype=torch.float32)[:n]
-    rows.append(avatar.render(neck, base_c))
-    labels["neck_yaw_deg"] = list(cfg.neck_deg)
-    jaw = {k: v.clone() for k, v in base_p.items()}
-    jaw["pose"][:, 6] = torch.tensor(list(cfg.jaw_rad), dtype=torch.float32)[:n]
-    rows.append(avatar.render(jaw, base_c))
-    labels["jaw_rad"] = list(cfg.jaw_rad)
-    dist = [orbit(camera, 0.0, dz=dz) for dz in cfg.distance_offsets]
-    cams = type(camera)(K=torch.cat([v.K for v in dist]), R=torch.cat([v.R for v in dist]),
-                        t=torch.cat([v.t for v in dist]), image_size=camera.image_size)
-    rows.append(avatar.render(base_p, cams))
-    labels["distance_offset"] = list(cfg.distance_offsets)
-    expr = {k: v.clone() for k, v in base_p.items()}
-    expr["expression"][:, 0] = torch.tensor(list(cfg.expression_values), dtype=torch.float32)[:n]
-    rows.append(avatar.render(expr, base_c))
-    labels["expression_1"] = list(cfg.expression_values)
-    return [np.concatenate(list(to_uint8(r)), 1) for r in rows], labels
+    rows = {"novel_view_yaw_deg": avatar.render(base, stack_cameras([orbit(camera, y) for y in cfg.yaw_deg])),
+            "neck_yaw_deg": vary("pose", 4, np.radians(list(cfg.neck_deg))),
+            "jaw_rad": vary("pose", 6, cfg.jaw_rad),
+            "distance_offset": avatar.render(base, stack_cameras([orbit(camera, 0.0, dz=d)
+                                                                   for d in cfg.distance_offsets])),
+            "expression_1": vary("expression", 0, cfg.expression_values)}
+    labels = {"novel_view_yaw_deg": list(cfg.yaw_deg), "neck_yaw_deg": list(cfg.neck_deg),
+              "jaw_rad": list(cfg.jaw_rad), "distance_offset": list(cfg.distance_offsets),
+              "expression_1": list(cfg.expression_values)}
+    return [np.concatenate(list(to_uint8(r)), 1) for r in rows.values()], labels
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     setup_run(cfg)
     apps = cfg.apps
-    avatar = load_avatar(apps.avatar)
-    fit = load_fit(apps.subject_dir, avatar.image_size)
+    avatar, fit = open_avatar(apps)
     frames = torch.nonzero(fit["fitted"]).flatten()
     frame = int(frames[-1])  # a test frame (the last fitted one)
     for key in ("neck_deg", "jaw_rad", "distance_offsets", "expression_values"):

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatarlab.apps.avatar import load_avatar, load_fit, select, to_uint8
+from avatarlab.apps.avatar import load_fit, open_avatar, select, to_uint8
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.subject_files import load_frame_stack
 from avatarlab.io import write_json, write_video
@@ -38,8 +38,7 @@ def transfer_params(target: dict, source: dict, source_idx: torch.Tensor, identi
 def main(cfg: DictConfig) -> None:
     setup_run(cfg)
     apps = cfg.apps
-    avatar = load_avatar(apps.avatar)
-    target = load_fit(apps.subject_dir, avatar.image_size)
+    avatar, target = open_avatar(apps)
     source = load_fit(apps.source_dir, avatar.image_size)
     frames, meta = load_frame_stack(Path(apps.source_dir))
     idx = torch.nonzero(source["fitted"]).flatten()[: int(apps.max_frames)]

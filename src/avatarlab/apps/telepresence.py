@@ -18,7 +18,7 @@ import torch
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 from omegaconf import DictConfig
 
-from avatarlab.apps.avatar import load_avatar, load_fit, select
+from avatarlab.apps.avatar import open_avatar, select
 from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.subject_files import load_frame_stack
 from avatarlab.io import write_json
@@ -40,8 +40,7 @@ def jpeg_bytes(frames: np.ndarray, quality: int) -> list[int]:
 def main(cfg: DictConfig) -> None:
     setup_run(cfg)
     apps = cfg.apps
-    avatar = load_avatar(apps.avatar)
-    fit = load_fit(apps.subject_dir, avatar.image_size)
+    avatar, fit = open_avatar(apps)
     frames, _ = load_frame_stack(Path(apps.subject_dir))
     idx = torch.nonzero(fit["fitted"]).flatten()[: int(apps.max_frames)]
     params, camera = select(fit, idx)
@@ -70,9 +69,9 @@ def main(cfg: DictConfig) -> None:
     ref = report["jpeg_bytes_per_frame"][f"q{apps.jpeg_quality[0]}_{size}px"]
     report["jpeg_over_float16_ratio"] = ref / report["bytes_per_frame"]["params_float16"]
     write_json(apps.out, report)
-    log.info("telepresence: %d values per frame = %d B (float16) vs JPEG q%d %.0f B (%.0fx); float16 costs %.1f dB "
-             "PSNR ceiling; receiver renders %.3f s/frame", n_values, 2 * n_values, apps.jpeg_quality[0], ref,
-             report["jpeg_over_float16_ratio"], report["float16_render_psnr_db"], seconds)
+    log.info("telepresence: %d values per frame = %d B (float16) vs JPEG q%d %.0f B (%.0fx); the render from float16 "
+             "is %.1f dB PSNR from the float32 one; receiver renders %.3f s/frame", n_values, 2 * n_values,
+             apps.jpeg_quality[0], ref, report["jpeg_over_float16_ratio"], report["float16_render_psnr_db"], seconds)
 
 
 if __name__ == "__main__":
