@@ -36,6 +36,7 @@ def dashboard(tmp_path_factory):
     from avatarlab.tracking import init_store, start_run
 
     results = tmp_path_factory.mktemp("dash") / "results"
+    saved = os.environ.get("MLFLOW_TRACKING_URI")  # mlflow.set_tracking_uri exports it: restore it afterwards
     init_store(results)
     cfg = OmegaConf.create({"paths": {"results": str(results)}, "scale": {"name": "smoke"},
                             "head_model": {"kind": "procedural"}})
@@ -64,6 +65,10 @@ def dashboard(tmp_path_factory):
     finally:
         server.terminate()
         server.wait(timeout=30)
+        if saved is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = saved
 
 
 def api(base: str, path: str, payload: dict | None = None) -> dict:

@@ -14,6 +14,7 @@ from conftest import REPO, SHARED_DATA
 
 def snakemake(workdir: Path, *args: str, check=True) -> subprocess.CompletedProcess:
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    env.pop("MLFLOW_TRACKING_URI", None)  # the workflow's own store under results/ (mlflow.set_tracking_uri sets it)
     cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
            "--cores", "2", "--config", "scale=smoke", "threads_per_job=1", *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=2400)
