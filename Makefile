@@ -7,7 +7,7 @@ CORES ?= 2
 SCALE ?= tiny
 PORT ?= 5000
 
-.PHONY: main test setup system browser dashboard clean-results
+.PHONY: main test setup system browser cluster dashboard clean-results
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,13 +31,19 @@ browser:
 	    { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q chromium >/dev/null 2>&1; }; }; } || \
 	  echo "note: Debian chromium is not installed; the dashboard screenshot test will be skipped"
 
+# Debian's slurm-wlm, munge and postgresql for the one-machine cluster of tests/test_cluster.py (skipped, with the
+# reason, where they cannot be installed)
+cluster:
+	@{ [ "$$(id -u)" = 0 ] && cluster/local_cluster.sh install; } || \
+	  echo "note: SLURM / PostgreSQL are not installed; the cluster tests will be skipped"
+
 # the whole reproduction at $(SCALE), then Snakemake's HTML report beside results/$(SCALE)/report/README.md
 main: setup system
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE)
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html
 
-test: setup system browser
+test: setup system browser cluster
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest
 
 dashboard: setup

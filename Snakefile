@@ -1,5 +1,6 @@
 # avatarlab workflow: preprocess -> pretrain -> finetune -> evaluate -> report.
 # `snakemake --cores 2` runs the main job (tiny scale, embedded default data); `--config scale=smoke` for seconds.
+import os
 from pathlib import Path
 
 from snakemake.utils import min_version
@@ -14,6 +15,14 @@ configfile: str(Path(workflow.basedir) / "workflow" / "config.yaml")
 report: "workflow/report/workflow.rst"
 
 
+# MLflow: the SQLite store under results/ by default; a tracking server when MLFLOW_TRACKING_URI is set (e.g. the
+# PostgreSQL-backed one of cluster/local_cluster.sh), which is then passed on to every job, on a cluster too.
+if os.environ.get("MLFLOW_TRACKING_URI"):
+
+    envvars:
+        "MLFLOW_TRACKING_URI",
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/headmodel.smk"
 include: "workflow/rules/preprocess.smk"
@@ -21,6 +30,15 @@ include: "workflow/rules/pretrain.smk"
 include: "workflow/rules/avatar.smk"
 include: "workflow/rules/speech.smk"
 include: "workflow/rules/report.smk"
+
+
+# On a cluster these run on the submitting machine: bookkeeping and aggregate targets, no computation.
+localrules:
+    all,
+    init_tracking,
+    pretrain_all,
+    avatars_all,
+    speech_all,
 
 
 rule all:

@@ -48,7 +48,10 @@ def ensure_experiment(name: str, results_dir: str | Path) -> str:
         return exp.experiment_id
     try:
         # experimentKind: the UI opens the experiment as model training (runs table), not as a GenAI app
-        return mlflow.create_experiment(name, artifact_location=artifact_root(results_dir),
+        # a tracking server keeps the artifacts where it was told to (--artifacts-destination); the SQLite default
+        # keeps them beside the database
+        remote = mlflow.get_tracking_uri().startswith(("http://", "https://"))
+        return mlflow.create_experiment(name, artifact_location=None if remote else artifact_root(results_dir),
                                         tags={"mlflow.experimentKind": "custom_model_development"})
     except Exception:  # another process created it between the two calls
         exp = mlflow.get_experiment_by_name(name)
@@ -79,7 +82,8 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, enabled:
     mlflow.set_tracking_uri(tracking_uri(cfg.paths.results))
     ensure_experiment(experiment_name(cfg.scale.name), cfg.paths.results)
     mlflow.set_experiment(experiment_name(cfg.scale.name))
-    all_tags = {"stage": stage, "scale": cfg.scale.name, "git_sha": git_sha(), "head_model": cfg.head_model.kind}
+    all_tags = {"stage": stage, "scale": cfg.scale.name, "git_sha": git_sha(), "head_model": cfg.head_model.kind,
+                "results_dir": str(Path(cfg.paths.results).resolve())}  # which checkout / work dir, on a shared server
     all_tags.update({k: str(v) for k, v in (tags or {}).items()})
     with mlflow.start_run(run_name=run_name, tags=all_tags):
         yield mlflow

@@ -20,7 +20,9 @@ rule finetune_avatar:
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
-    threads: THREADS
+    threads: step_threads("finetune")
+    resources:
+        **step_resources("finetune"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -50,7 +52,9 @@ rule finetune_interp_variant:
         hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}/.hydra"),
         subject=subject_args,
         out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}",
-    threads: THREADS
+    threads: step_threads("finetune")
+    resources:
+        **step_resources("finetune"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -75,7 +79,9 @@ rule novel_views:
         settings=lambda wc: settings("apps", modules=("avatarlab.apps.novel_views",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/novel_views"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -101,7 +107,9 @@ rule reenact:
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/reenact_{wc.source}"),
         subject=subject_args,
         source_dir=lambda wc: subject_dir(wc.source),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -122,7 +130,9 @@ rule telepresence:
         settings=lambda wc: settings("apps", modules=("avatarlab.apps.telepresence",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/telepresence"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:

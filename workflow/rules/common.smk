@@ -5,7 +5,8 @@ REPO = Path(workflow.basedir)
 SCALE = config["scale"]
 HEAD_MODEL = config["head_model"]
 RESULTS = f"results/{SCALE}"
-THREADS = int(config.get("threads_per_job", 2))  # torch threads of a step; 1 lets --cores 2 run two steps at once
+# threads of every step, overriding conf/scale/<scale>.yaml `resources.<kind>.cpus` (1 lets --cores 2 run two at once)
+THREADS_OVERRIDE = config.get("threads_per_job")
 LOGS = f"logs/{SCALE}"
 
 
@@ -16,6 +17,28 @@ def _compose(extra_overrides=()):
     overrides = [f"scale={SCALE}", f"head_model={HEAD_MODEL}", *config.get("hydra_overrides", []), *extra_overrides]
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
+
+
+def _scale_resources():
+    """conf/scale/<scale>.yaml `resources`: per kind of step (light, fit, train, finetune, speech) the cpus, memory,
+    runtime and GPUs a step asks for. Locally `cpus` is the step's threads; on a cluster the executor (profiles/slurm)
+    turns them all into the job's request."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(_compose().scale.resources, resolve=True)
+
+
+STEP_RESOURCES = _scale_resources()
+
+
+def step_threads(kind):
+    return int(THREADS_OVERRIDE) if THREADS_OVERRIDE else int(STEP_RESOURCES[kind]["cpus"])
+
+
+def step_resources(kind):
+    """Snakemake resources of a kind of step: mem_mb, runtime (minutes), gpu (count; 0 requests none)."""
+    spec = STEP_RESOURCES[kind]
+    return {"mem_mb": int(spec["mem_mb"]), "runtime": int(spec["runtime"]), "gpu": int(spec.get("gpu", 0))}
 
 
 _SETTINGS_CACHE = {}

@@ -12,7 +12,9 @@ rule render_demo:
     params:
         settings=lambda wc: settings("seed", "head_model", "render", "demo", modules=("avatarlab.headmodel.render_demo",)),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/render_demo"),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -31,7 +33,9 @@ rule dlib_check:
     params:
         settings=lambda wc: settings("seed", "head_model", "render", "dlib_check", modules=("avatarlab.headmodel.dlib_check",)),
         hydra=hydra_args(f"{RESULTS}/headmodel/.hydra/dlib_check"),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:

@@ -14,7 +14,9 @@ rule synthesize_subject:
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
         preset=lambda wc: SUBJECTS[wc.subject].get("preset", "talking"),
         seed=lambda wc: SUBJECTS[wc.subject].get("seed", 0),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -37,7 +39,9 @@ rule extract_frames:
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/frames"),
         subject=subject_args,
         inputs=lambda wc, input: "'preprocess.inputs=[" + ",".join(f'"{p}"' for p in input.media) + "]'",
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -59,7 +63,9 @@ rule detect_landmarks:
         settings=lambda wc: settings("preprocess", modules=("avatarlab.preprocess.track_landmarks",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/landmarks"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -80,7 +86,9 @@ rule segment_masks:
         settings=lambda wc: settings("preprocess", modules=("avatarlab.preprocess.masks",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/masks"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -104,7 +112,9 @@ rule fit_rgb:
         settings=lambda wc: settings("seed", "preprocess", "fit_rgb", "head_model", "render", modules=("avatarlab.preprocess.fit_rgb",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgb"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("fit")
+    resources:
+        **step_resources("fit"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -125,7 +135,9 @@ rule fit_rgbd:
         settings=lambda wc: settings("seed", "preprocess", "fit_rgbd", "head_model", modules=("avatarlab.preprocess.fit_rgbd",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/fit_rgbd"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("fit")
+    resources:
+        **step_resources("fit"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -148,7 +160,9 @@ rule interpolate_frames:
         settings=lambda wc: settings("seed", "preprocess", "interp", modules=("avatarlab.preprocess.interp.run",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/interp"),
         subject=subject_args,
-    threads: THREADS
+    threads: step_threads("fit")
+    resources:
+        **step_resources("fit"),
     conda:
         "../envs/avatarlab.yaml"
     shell:

@@ -23,7 +23,9 @@ rule synthesize_portraits:
     params:
         settings=lambda wc: settings("seed", "head_model", "render", "subject", modules=("avatarlab.data.portraits",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -45,7 +47,9 @@ rule pretrain_alpha:
         settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.alpha, modules=("avatarlab.train.pretrain",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.alpha}/.hydra"),
         run=lambda wc: pretrain_args(wc, wc.alpha, wc.alpha, f"{RESULTS}/pretrain/{wc.alpha}"),
-    threads: THREADS
+    threads: step_threads("train")
+    resources:
+        **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -68,7 +72,9 @@ rule pretrain_beta:
         run=lambda wc, input: pretrain_args(wc, f"{wc.beta}_from_{wc.alpha}", wc.beta,
                                             f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}",
                                             [f"pretrain.init_model={input.parent}"]),
-    threads: THREADS
+    threads: step_threads("train")
+    resources:
+        **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -88,7 +94,9 @@ rule renderer_run:
         run=lambda wc: pretrain_args(wc, f"renderer_{wc.renderer}", "alpha1", f"{RESULTS}/pretrain/renderer_{wc.renderer}",
                                      [f"pretrain.renderer={wc.renderer}",
                                       "pretrain.iterations=${scale.renderer_experiment_iterations}"]),
-    threads: THREADS
+    threads: step_threads("train")
+    resources:
+        **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:

@@ -12,7 +12,9 @@ rule speech_corpus:
     params:
         settings=lambda wc: settings("seed", "head_model", "speech", modules=("avatarlab.speech.corpus",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/corpus"),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -34,7 +36,9 @@ rule speech_train:
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
         run=lambda wc: " ".join(f"'{a}'" for a in SPEECH_MODELS[wc.speech_model]),
         out_dir=lambda wc: f"{RESULTS}/speech/{wc.speech_model}",
-    threads: THREADS
+    threads: step_threads("speech")
+    resources:
+        **step_resources("speech"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -60,7 +64,9 @@ rule speak:
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/speak_{wc.subject}"),
         subject=subject_args,
         audio=lambda wc: speech_input_args(),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -82,7 +88,9 @@ rule speech_grid_eval:
         settings=lambda wc: settings("speech", modules=("avatarlab.speech.grid",)),
         hydra=lambda wc: hydra_args(f"{RESULTS}/speech/.hydra/grid_eval"),
         clips=config.get("grid_clips"),
-    threads: THREADS
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:

@@ -288,6 +288,9 @@ def main(cfg: DictConfig) -> None:
                   "test_utterances": len(test), "train_utterances": len(corpus.split("train"))}
         write_json(out_dir / "metrics.json", report)
         if mlf is not None:
+            for epoch in history:  # the training curves, one step per epoch
+                mlf.log_metrics({f"train_{k}": float(v) for k, v in epoch.items() if k != "epoch"},
+                                step=int(epoch["epoch"]))
             mlf.log_metrics({f"test_{k}": v for k, v in metrics.items() if isinstance(v, float)})
             mlf.log_metric("train_seconds", seconds)
     log.info("%s: test lip error %.2f %% IOD, latency %.0f ms (%.0fs training)", name,
