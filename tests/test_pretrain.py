@@ -170,3 +170,18 @@ def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch):
     for p, q in zip(full["net"].parameters(), resumed["net"].parameters()):
         torch.testing.assert_close(p, q)
     assert resumed["metrics"] == full["metrics"]
+
+
+def test_paper_scale_sizes_match_the_dissertation():
+    """conf/scale/paper.yaml is the dissertation's set-up (DESIGN.md sections 3-4), number for number."""
+    s = compose_config(["scale=paper"]).scale
+    assert (s.pretrain_alpha_iterations, s.pretrain_beta_iterations, s.pretrain_batch) == (310000, 2500, 64)
+    assert (s.pretrain_image_size, s.pretrain_feature_size) == (256, 32)          # 32² feature map -> 256² image
+    assert (s.nerf_frequencies, s.nerf_depth, s.nerf_width, s.nerf_skip_layer) == (10, 8, 384, 4)
+    assert (s.nerf_feature_channels, s.nerf_samples) == (256, 64)
+    assert list(s.synthetic_neck_deg) == [80, 60, 80]
+    assert (s.renderer_experiment_iterations, s.renderer_experiment_image_size) == (30000, 128)
+    assert s.renderer_experiment_image_size // s.renderer_experiment_feature_size == 8  # three x2 stages
+    assert (s.finetune_iterations, s.finetune_test_frames, s.mouth_open_frames) == (1000, 350, 30)
+    assert (s.fit_rigid_iterations, s.fit_keyframe_iterations) == (200, 800)
+    assert s.speech_speakers == 34 and s.speech_window_hidden == 3000

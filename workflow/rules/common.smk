@@ -31,6 +31,11 @@ def _scale_resources():
 STEP_RESOURCES = _scale_resources()
 
 
+def scale_value(key):
+    """One resolved conf/scale value, for a rule's command line (so that changing it reruns the rule)."""
+    return _compose().scale[key]
+
+
 def step_threads(kind):
     return int(THREADS_OVERRIDE) if THREADS_OVERRIDE else int(STEP_RESOURCES[kind]["cpus"])
 

@@ -93,7 +93,9 @@ rule renderer_run:
         hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/renderer_{wc.renderer}/.hydra"),
         run=lambda wc: pretrain_args(wc, f"renderer_{wc.renderer}", "alpha1", f"{RESULTS}/pretrain/renderer_{wc.renderer}",
                                      [f"pretrain.renderer={wc.renderer}",
-                                      "pretrain.iterations=${scale.renderer_experiment_iterations}"]),
+                                      f"pretrain.iterations={scale_value('renderer_experiment_iterations')}",
+                                      f"scale.pretrain_image_size={scale_value('renderer_experiment_image_size')}",
+                                      f"scale.pretrain_feature_size={scale_value('renderer_experiment_feature_size')}"]),
     threads: step_threads("train")
     resources:
         **step_resources("train"),
