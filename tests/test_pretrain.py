@@ -185,3 +185,45 @@ def test_paper_scale_sizes_match_the_dissertation():
     assert (s.finetune_iterations, s.finetune_test_frames, s.mouth_open_frames) == (1000, 350, 30)
     assert (s.fit_rigid_iterations, s.fit_keyframe_iterations) == (200, 800)
     assert s.speech_speakers == 34 and s.speech_window_hidden == 3000
+
+
+def test_device_comes_from_the_config():
+    from avatarlab.config import resolve_device
+
+    assert resolve_device(compose_config(["device=cpu"])) == torch.device("cpu")
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device(compose_config([])).type == expected  # the default is auto
+    if not torch.cuda.is_available():
+        with pytest.raises(RuntimeError, match="device=cuda requested but CUDA is not available"):
+            resolve_device(compose_config(["device=cuda"]))
+
+
+def _short_training(tmp_path, name, *extra):
+    from avatarlab.train import pretrain
+
+    if not (tmp_path / "real").is_dir():
+        fake_real_set(tmp_path / "real")
+    cfg = compose_config(["scale=smoke", "strategy=beta4", f"pretrain.real_subject_dir={tmp_path / 'real'}",
+                          "tracking.enabled=false", "strategy.init=null", f"pretrain.out_dir={tmp_path / name}",
+                          *extra])
+    return pretrain.train(cfg)
+
+
+@pytest.mark.slow
+def test_mixed_precision_training_runs_and_stays_close(tmp_path):
+    """amp=true: bfloat16 autocast on the CPU (float16 + GradScaler on CUDA); the run trains like float32."""
+    full = _short_training(tmp_path, "fp32", "device=cpu")
+    mixed = _short_training(tmp_path, "amp", "device=cpu", "amp=true")
+    assert len(mixed["history"]) == len(full["history"])
+    assert all(np.isfinite(h["loss"]) for h in mixed["history"])
+    assert mixed["history"][0]["loss"] == pytest.approx(full["history"][0]["loss"], rel=0.05)
+    assert mixed["metrics"]["psnr"] == pytest.approx(full["metrics"]["psnr"], abs=1.0)
+    assert next(mixed["net"].parameters()).dtype == torch.float32  # master weights stay float32
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_training_on_cuda_matches_the_cpu(tmp_path):
+    cpu = _short_training(tmp_path, "cpu", "device=cpu")
+    gpu = _short_training(tmp_path, "cuda", "device=cuda")
+    assert next(gpu["net"].parameters()).device.type == "cuda"
+    assert gpu["metrics"]["psnr"] == pytest.approx(cpu["metrics"]["psnr"], abs=0.5)

@@ -13,13 +13,28 @@ CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger("avatarlab")
 
 
+def resolve_device(cfg: DictConfig) -> torch.device:
+    """`device` of the config: cpu | cuda | cuda:N | auto (CUDA when available, else the CPU)."""
+    name = str(cfg.get("device", "cpu"))
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"device={name} requested but CUDA is not available on this machine (use device=auto)")
+    return torch.device(name)
+
+
+def autocast(device: torch.device, enabled: bool):
+    """Mixed precision (`amp: true`): float16 on CUDA (with a GradScaler), bfloat16 on the CPU."""
+    return torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16,
+                          enabled=enabled)
+
+
 def setup_run(cfg: DictConfig) -> torch.device:
     """Seeds, threads and device from the config (every entry point calls this first)."""
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(int(cfg.threads))
-    if cfg.device == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("device=cuda requested but CUDA is not available on this machine")
-    log.info("scale=%s device=%s threads=%d", cfg.scale.name, cfg.device, cfg.threads)
-    return torch.device(cfg.device)
+    device = resolve_device(cfg)
+    log.info("scale=%s device=%s threads=%d", cfg.scale.name, device, cfg.threads)
+    return device

@@ -89,6 +89,6 @@ def head_model_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
     terms["perceptual"] = w_perceptual * sum(((a - b) ** 2).mean() for a, b in zip(ft, fp))
     real = is_real.float()
     terms["offsets"] = sum(offset_weights.get(k, 0.0) * ((v**2).sum(-1) * real).sum() / real.sum().clamp(min=1)
-                           for k, v in offsets.items()) if offsets else torch.zeros(())
+                           for k, v in offsets.items()) if offsets else torch.zeros((), device=pred.device)
     terms["total"] = terms["mse"] + terms["perceptual"] + terms["offsets"]
     return terms

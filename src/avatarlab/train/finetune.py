@@ -64,13 +64,14 @@ def finetune_config(cfg: DictConfig, train_idx: np.ndarray) -> DictConfig:
 @torch.no_grad()
 def evaluate_avatar(net, test: RealImageSet, mouth_open: int, lpips) -> tuple[dict, torch.Tensor, torch.Tensor]:
     net.eval()
-    geometry, appearance = codes(test.params, test.params["lighting"])
+    device = next(net.parameters()).device
+    geometry, appearance = (c.to(device) for c in codes(test.params, test.params["lighting"]))
     preds = []
     start = time.perf_counter()
     for k in range(0, len(test), 4):
         s = slice(k, k + 4)
-        cam = Camera(K=test.K[s], R=test.R[s], t=test.t[s], image_size=(test.size, test.size))
-        preds.append(net(geometry[s], appearance[s], cam, stratified=False))
+        cam = Camera(K=test.K[s], R=test.R[s], t=test.t[s], image_size=(test.size, test.size)).to(device)
+        preds.append(net(geometry[s], appearance[s], cam, stratified=False).cpu())
     seconds_per_frame = (time.perf_counter() - start) / len(test)
     pred = composite(torch.cat(preds), test.masks)
     target = composite(test.images, test.masks)

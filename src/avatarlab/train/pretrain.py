@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, autocast, resolve_device, setup_run
 from avatarlab.data.schedule import scaled_schedule
 from avatarlab.data.subject_files import load_frame_stack
 from avatarlab.data.synthetic import SyntheticGenerator
@@ -160,9 +160,11 @@ def evaluate_on_head_model(net: HeadNeRFModel, generator: SyntheticGenerator, co
     """PSNR/SSIM of the model against head-model renders of held-out synthetic parameters (fixed seed)."""
     g = torch.Generator().manual_seed(10_000 + seed)
     batch = generator.sample(count, g)
+    device = next(net.parameters()).device
     geometry, appearance = codes(batch["params"], batch["lighting"])
-    pred = torch.cat([net(geometry[k:k + 4], appearance[k:k + 4], _slice_camera(batch["camera"], slice(k, k + 4)),
-                          stratified=False) for k in range(0, count, 4)])
+    geometry, appearance, camera = geometry.to(device), appearance.to(device), batch["camera"].to(device)
+    pred = torch.cat([net(geometry[k:k + 4], appearance[k:k + 4], _slice_camera(camera, slice(k, k + 4)),
+                          stratified=False).cpu() for k in range(0, count, 4)])
     target = composite(batch["images"], batch["masks"])
     pred_c = composite(pred, batch["masks"])
     mse_in = (((pred - batch["images"]) * batch["masks"]) ** 2).sum() / (3 * batch["masks"].sum())
@@ -211,12 +213,15 @@ def train(cfg: DictConfig) -> dict:
     fixed = set(pre.get("fixed_codes") or [])  # fine-tuning keeps the subject's shape and texture fixed
     dims = {"shape": head.n_shape, "pose": 12, "expression": head.n_expression, "texture": head.n_texture,
             "lighting": 27}
-    offsets = torch.nn.ParameterDict({k: torch.zeros(len(real), d) for k, d in dims.items() if k not in fixed})
+    device, amp = resolve_device(cfg), bool(cfg.get("amp", False))
+    net.to(device)
+    offsets = torch.nn.ParameterDict({k: torch.zeros(len(real), d) for k, d in dims.items() if k not in fixed}).to(device)
     for p in net.nerf.frozen_prefix(int(pre.get("freeze_layers") or 0)):
         p.requires_grad_(False)
     optim = torch.optim.Adam([{"params": [p for p in net.parameters() if p.requires_grad]},
                               {"params": offsets.parameters(), "lr": float(pre.offset_lr)}], lr=float(pre.lr))
-    features = perceptual_network(cfg.model.vgg16_weights)
+    features = perceptual_network(cfg.model.vgg16_weights).to(device)
+    scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
     g = torch.Generator().manual_seed(int(cfg.seed))
     step, start_step = 0, 0
     history: list[dict] = []
@@ -239,6 +244,8 @@ def train(cfg: DictConfig) -> dict:
             net.load_state_dict(state["model"])
             offsets.load_state_dict(state["offsets"])
             optim.load_state_dict(state["optim"])
+            if state.get("scaler"):
+                scaler.load_state_dict(state["scaler"])
             g.set_state(state["generator"])
             torch.set_rng_state(state["torch_rng"])
             step, start_step, history = state["step"], state["start_step"], state["history"]
@@ -271,20 +278,26 @@ def train(cfg: DictConfig) -> dict:
             params.append({k: real.params[k][real_idx] for k in ("shape", "expression", "pose", "texture")})
             cams = _cat_cameras(cams, Camera(K=r_K, R=real.R[real_idx], t=real.t[real_idx], image_size=(size, size)))
             is_real.append(torch.ones(n_real, dtype=torch.bool))
-        images, masks = torch.cat(images), torch.cat(masks)
-        merged = {k: torch.cat([p_[k] for p_ in params]) for k in ("shape", "expression", "pose", "texture")}
-        lighting = torch.cat(lights)
-        real_mask = torch.cat(is_real)
-        batch_offsets = {k: torch.cat([torch.zeros(n_syn, offsets[k].shape[1]), offsets[k][real_idx]])
+        # the batch is drawn on the CPU (head-model renders, real frames) and trained on `device`
+        images, masks = torch.cat(images).to(device), torch.cat(masks).to(device)
+        merged = {k: torch.cat([p_[k] for p_ in params]).to(device) for k in ("shape", "expression", "pose", "texture")}
+        lighting = torch.cat(lights).to(device)
+        real_mask = torch.cat(is_real).to(device)
+        cams = cams.to(device)
+        batch_offsets = {k: torch.cat([torch.zeros(n_syn, offsets[k].shape[1], device=device),
+                                       offsets[k][real_idx.to(device)]])
                          for k in OFFSET_KEYS if k in offsets}
         geometry, appearance = codes(merged, lighting, batch_offsets)
         optim.zero_grad()
-        pred = net(geometry, appearance, cams)
-        target = composite(images, masks)
-        terms = head_model_loss(pred, target, masks, features, batch_offsets, offset_w, real_mask,
-                                float(cfg.model.w_mse), float(cfg.model.w_perceptual))
-        terms["total"].backward()
-        optim.step()
+        with autocast(device, amp):
+            pred = net(geometry, appearance, cams)
+            target = composite(images, masks)
+            terms = head_model_loss(pred.float(), target, masks, features, batch_offsets, offset_w, real_mask,
+                                    float(cfg.model.w_mse), float(cfg.model.w_perceptual))
+        scaler.scale(terms["total"]).backward()
+        scaler.step(optim)
+        scaler.update()
+        pred = pred.float()
         step += 1
         with torch.no_grad():
             psnr = float(kornia.metrics.psnr(composite(pred, masks), target, 1.0))
@@ -295,7 +308,8 @@ def train(cfg: DictConfig) -> dict:
             with atomic_path(checkpoint) as tmp:
                 torch.save({"model": net.state_dict(), "offsets": offsets.state_dict(), "optim": optim.state_dict(),
                             "generator": g.get_state(), "torch_rng": torch.get_rng_state(), "step": step,
-                            "start_step": start_step, "history": history, "fingerprint": fp}, tmp)
+                            "start_step": start_step, "history": history, "fingerprint": fp,
+                            "scaler": scaler.state_dict() if scaler.is_enabled() else None}, tmp)
         if step % max(1, int(pre.log_every)) == 0:
             log.info("it %d/%d p=%.2f loss %.4f psnr %.2f", step, schedule.N, p, history[-1]["loss"], psnr)
     seconds = time.perf_counter() - t0
