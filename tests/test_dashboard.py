@@ -2,6 +2,7 @@
 avatar runs, looked at in headless Chromium - the runs table and the metrics of the compared runs."""
 import json
 import os
+import signal
 import shutil
 import socket
 import subprocess
@@ -48,7 +49,7 @@ def dashboard(tmp_path_factory):
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     server = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results),
                                "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                              env=env)
+                              env=env, start_new_session=True)  # its own process group: the server's workers too
     base = f"http://127.0.0.1:{port}"
     try:
         for _ in range(120):
@@ -63,8 +64,12 @@ def dashboard(tmp_path_factory):
             pytest.fail("dashboard did not answer within 60 s")
         yield base, results
     finally:
-        server.terminate()
-        server.wait(timeout=30)
+        os.killpg(server.pid, signal.SIGTERM)  # mlflow server, uvicorn and its job consumers, not only our wrapper
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait(timeout=30)
         if saved is None:
             os.environ.pop("MLFLOW_TRACKING_URI", None)
         else:
