@@ -19,21 +19,22 @@ def _compose(extra_overrides=()):
         return compose(config_name="config", overrides=overrides)
 
 
-def _scale_resources():
-    """conf/scale/<scale>.yaml `resources`: per kind of step (light, fit, train, finetune, speech) the cpus, memory,
-    runtime and GPUs a step asks for. Locally `cpus` is the step's threads; on a cluster the executor (profiles/slurm)
-    turns them all into the job's request."""
+def _scale_config():
+    """conf/scale/<scale>.yaml, resolved (with the user's Hydra overrides), composed once per workflow run."""
     from omegaconf import OmegaConf
 
-    return OmegaConf.to_container(_compose().scale.resources, resolve=True)
+    return OmegaConf.to_container(_compose().scale, resolve=True)
 
 
-STEP_RESOURCES = _scale_resources()
+SCALE_CONFIG = _scale_config()
+# per kind of step (light, fit, train, finetune, speech) the cpus, memory, runtime and GPUs a step asks for. Locally
+# `cpus` is the step's threads; on a cluster the executor (profiles/slurm) turns them all into the job's request.
+STEP_RESOURCES = SCALE_CONFIG["resources"]
 
 
 def scale_value(key):
     """One resolved conf/scale value, for a rule's command line (so that changing it reruns the rule)."""
-    return _compose().scale[key]
+    return SCALE_CONFIG[key]
 
 
 def step_threads(kind):
@@ -147,6 +148,11 @@ INTERP_SUBJECTS = [s for s in config.get("interp_subjects", []) if s in SUBJECTS
 TRANSFERS = [(t["avatar"], t["source"]) for t in config.get("transfers", [])
              if t["avatar"] in SUBJECTS and t["source"] in SUBJECTS]
 
+# the speech models: seed 000 with / without its regulariser, seed 001's sliding window
+SPEECH_MODELS = {"lstm_reg": ["speech.model=lstm", "speech.regularize=true"],
+                 "lstm_noreg": ["speech.model=lstm", "speech.regularize=false"],
+                 "window": ["speech.model=window"]}
+
 
 wildcard_constraints:
     subject="|".join(ALL_SUBJECTS),
@@ -156,7 +162,7 @@ wildcard_constraints:
     init="|".join(PRETRAINED),
     source="|".join(ALL_SUBJECTS),
     variant="b|c",
-    speech_model="lstm_reg|lstm_noreg|window",
+    speech_model="|".join(SPEECH_MODELS),
 
 
 def subject_dir(subject):
@@ -228,7 +234,7 @@ GRID_CLIPS = _grid_clips()
 def speech_outputs():
     """The three speech models (seed 000 with / without its regulariser, seed 001), the speaking avatars, and the
     test on real GRID clips where they exist."""
-    outputs = [f"{RESULTS}/speech/{m}/metrics.json" for m in ("lstm_reg", "lstm_noreg", "window")]
+    outputs = [f"{RESULTS}/speech/{m}/metrics.json" for m in SPEECH_MODELS]
     outputs += [f"{RESULTS}/speech/grid_eval.json"] if GRID_CLIPS else []
     return outputs + [f"{RESULTS}/speech/speak_{s}.mp4" for s in config.get("speech_subjects", []) if s in SUBJECTS]
 
@@ -269,11 +275,6 @@ def pretrain_args(wc, name, strategy, out_dir, extra=()):
 def final_avatar(subject):
     """The final-recipe avatar of a subject (what the applications and speech use)."""
     return f"{RESULTS}/avatars/{subject}/{FINAL_RECIPE}/model.pt"
-
-
-SPEECH_MODELS = {"lstm_reg": ["speech.model=lstm", "speech.regularize=true"],
-                 "lstm_noreg": ["speech.model=lstm", "speech.regularize=false"],
-                 "window": ["speech.model=window"]}
 
 
 def speech_input_args():
