@@ -24,7 +24,7 @@ from avatarlab.evaluate.metrics import identity_similarity, lpips_metric, psnr, 
 from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.render.camera import Camera
 from avatarlab.tracking import start_run
-from avatarlab.train.pretrain import RealImageSet, codes, composite, train
+from avatarlab.train.pretrain import RealImageSet, codes, composite, render_in_chunks, train
 
 log = logging.getLogger(__name__)
 
@@ -64,16 +64,11 @@ def finetune_config(cfg: DictConfig, train_idx: np.ndarray) -> DictConfig:
 @torch.no_grad()
 def evaluate_avatar(net, test: RealImageSet, mouth_open: int, lpips) -> tuple[dict, torch.Tensor, torch.Tensor]:
     net.eval()
-    device = next(net.parameters()).device
-    geometry, appearance = (c.to(device) for c in codes(test.params, test.params["lighting"]))
-    preds = []
+    camera = Camera(K=test.K, R=test.R, t=test.t, image_size=(test.size, test.size))
     start = time.perf_counter()
-    for k in range(0, len(test), 4):
-        s = slice(k, k + 4)
-        cam = Camera(K=test.K[s], R=test.R[s], t=test.t[s], image_size=(test.size, test.size)).to(device)
-        preds.append(net(geometry[s], appearance[s], cam, stratified=False).cpu())
+    preds = render_in_chunks(net, *codes(test.params, test.params["lighting"]), camera)
     seconds_per_frame = (time.perf_counter() - start) / len(test)
-    pred = composite(torch.cat(preds), test.masks)
+    pred = composite(preds, test.masks)
     target = composite(test.images, test.masks)
     jaw = test.params["pose"][:, 6]
     subset = torch.argsort(jaw, descending=True)[: max(1, min(mouth_open, len(test)))]

@@ -160,17 +160,23 @@ def evaluate_on_head_model(net: HeadNeRFModel, generator: SyntheticGenerator, co
     """PSNR/SSIM of the model against head-model renders of held-out synthetic parameters (fixed seed)."""
     g = torch.Generator().manual_seed(10_000 + seed)
     batch = generator.sample(count, g)
-    device = next(net.parameters()).device
-    geometry, appearance = codes(batch["params"], batch["lighting"])
-    geometry, appearance, camera = geometry.to(device), appearance.to(device), batch["camera"].to(device)
-    pred = torch.cat([net(geometry[k:k + 4], appearance[k:k + 4], _slice_camera(camera, slice(k, k + 4)),
-                          stratified=False).cpu() for k in range(0, count, 4)])
+    pred = render_in_chunks(net, *codes(batch["params"], batch["lighting"]), batch["camera"])
     target = composite(batch["images"], batch["masks"])
     pred_c = composite(pred, batch["masks"])
     mse_in = (((pred - batch["images"]) * batch["masks"]) ** 2).sum() / (3 * batch["masks"].sum())
     return {"psnr": float(kornia.metrics.psnr(pred_c, target, 1.0)),
             "psnr_head": float(-10 * torch.log10(mse_in)),
             "ssim": float(kornia.metrics.ssim(pred_c, target, 11).mean())}, pred_c, target
+
+
+@torch.no_grad()
+def render_in_chunks(net: HeadNeRFModel, geometry: torch.Tensor, appearance: torch.Tensor, camera: Camera,
+                     chunk: int = 4) -> torch.Tensor:
+    """Deterministic renders (no ray jitter) of a batch, `chunk` images at a time on the net's device; on the CPU."""
+    device = next(net.parameters()).device
+    geometry, appearance, camera = geometry.to(device), appearance.to(device), camera.to(device)
+    return torch.cat([net(geometry[k:k + chunk], appearance[k:k + chunk], _slice_camera(camera, slice(k, k + chunk)),
+                          stratified=False).cpu() for k in range(0, len(geometry), chunk)])
 
 
 def _slice_camera(camera: Camera, s: slice) -> Camera:
@@ -290,14 +296,13 @@ def train(cfg: DictConfig) -> dict:
         geometry, appearance = codes(merged, lighting, batch_offsets)
         optim.zero_grad()
         with autocast(device, amp):
-            pred = net(geometry, appearance, cams)
+            pred = net(geometry, appearance, cams).float()  # the loss in float32 (mixed precision: the net only)
             target = composite(images, masks)
-            terms = head_model_loss(pred.float(), target, masks, features, batch_offsets, offset_w, real_mask,
+            terms = head_model_loss(pred, target, masks, features, batch_offsets, offset_w, real_mask,
                                     float(cfg.model.w_mse), float(cfg.model.w_perceptual))
         scaler.scale(terms["total"]).backward()
         scaler.step(optim)
         scaler.update()
-        pred = pred.float()
         step += 1
         with torch.no_grad():
             psnr = float(kornia.metrics.psnr(composite(pred, masks), target, 1.0))
