@@ -12,6 +12,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -23,6 +24,38 @@ def mlp_flops_per_point(nerf) -> int:
     return sum(2 * m.in_features * m.out_features for m in nerf.modules() if isinstance(m, torch.nn.Linear))
 
 
+def training_setup(cfg, image_size: int, feature_size: int, batch: int) -> SimpleNamespace:
+    """The head model's synthetic generator and a CNeRF + proposed renderer with its optimiser at the config's sizes:
+    `sample()` draws a batch of synthetic samples, `train_step(sample)` is one forward + backward + Adam step."""
+    from avatarlab.data.synthetic import SyntheticGenerator
+    from avatarlab.headmodel import load_head_model
+    from avatarlab.model.losses import RandomConvFeatures, head_model_loss
+    from avatarlab.train.pretrain import HeadNeRFModel, codes, composite, nerf_config
+
+    head = load_head_model(cfg.head_model)
+    real = {"shape": torch.zeros(4, head.n_shape), "expression": torch.zeros(4, head.n_expression),
+            "texture": torch.zeros(4, head.n_texture), "lighting": torch.zeros(4, 9, 3)}
+    real["lighting"][:, 0] = 2.8
+    gen = SyntheticGenerator(head, real, cfg.synthetic, image_size, (0.5, 0.5, 0.5))
+    torch.manual_seed(0)
+    net = HeadNeRFModel(nerf_config(cfg, head), "proposed", feature_size)
+    optim = torch.optim.Adam(net.parameters(), lr=1e-4)
+    feats = RandomConvFeatures()
+    g = torch.Generator().manual_seed(0)
+
+    def train_step(s):
+        geometry, appearance = codes(s["params"], s["lighting"])
+        optim.zero_grad()
+        pred = net(geometry, appearance, s["camera"])
+        loss = head_model_loss(pred, composite(s["images"], s["masks"]), s["masks"], feats, {}, {},
+                               torch.zeros(batch, dtype=torch.bool))["total"]
+        loss.backward()
+        optim.step()
+
+    return SimpleNamespace(gen=gen, net=net, real=real, g=g, sample=lambda: gen.sample(batch, g),
+                           train_step=train_step)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", default="tiny")
@@ -32,33 +65,15 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     from conftest import compose_config
 
-    from avatarlab.data.synthetic import SyntheticGenerator
-    from avatarlab.headmodel import load_head_model
-    from avatarlab.model.losses import RandomConvFeatures, head_model_loss
-    from avatarlab.train.pretrain import HeadNeRFModel, codes, composite, nerf_config
+    from avatarlab.train.pretrain import codes
 
     cfg = compose_config([f"scale={args.scale}"])
-    head = load_head_model(cfg.head_model)
     size, fsize, batch = cfg.scale.pretrain_image_size, cfg.scale.pretrain_feature_size, cfg.scale.pretrain_batch
-    real = {"shape": torch.zeros(4, head.n_shape), "expression": torch.zeros(4, head.n_expression),
-            "texture": torch.zeros(4, head.n_texture), "lighting": torch.zeros(4, 9, 3)}
-    real["lighting"][:, 0] = 2.8
-    gen = SyntheticGenerator(head, real, cfg.synthetic, size, (0.5, 0.5, 0.5))
-    torch.manual_seed(0)
-    net = HeadNeRFModel(nerf_config(cfg, head), "proposed", fsize)
-    optim = torch.optim.Adam(net.parameters(), lr=1e-4)
-    feats = RandomConvFeatures()
-    g = torch.Generator().manual_seed(0)
+    run = training_setup(cfg, size, fsize, batch)
+    gen, net, real, g = run.gen, run.net, run.real, run.g
 
-    def step():
-        s = gen.sample(batch, g)
-        geometry, appearance = codes(s["params"], s["lighting"])
-        optim.zero_grad()
-        pred = net(geometry, appearance, s["camera"])
-        loss = head_model_loss(pred, composite(s["images"], s["masks"]), s["masks"], feats, {}, {},
-                               torch.zeros(batch, dtype=torch.bool))["total"]
-        loss.backward()
-        optim.step()
+    def step():  # synthetic rendering included, as in training
+        run.train_step(run.sample())
 
     step()
     t0 = time.perf_counter()

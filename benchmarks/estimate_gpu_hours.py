@@ -34,41 +34,17 @@ SUSTAINED = 0.30  # fraction of peak a NeRF MLP + conv renderer step sustains (s
 def paper_step(image_size: int, feature_size: int, batch: int, threads: int, steps: int):
     """(seconds per step, FLOPs per step) of a paper-size training step at `batch` on this CPU."""
     torch.set_num_threads(threads)
+    from bench_pretrain import training_setup
     from conftest import compose_config
 
-    from avatarlab.data.synthetic import SyntheticGenerator
-    from avatarlab.headmodel import load_head_model
-    from avatarlab.model.losses import RandomConvFeatures, head_model_loss
-    from avatarlab.train.pretrain import HeadNeRFModel, codes, composite, nerf_config
-
-    cfg = compose_config(["scale=paper"])
-    head = load_head_model(cfg.head_model)
-    real = {"shape": torch.zeros(4, head.n_shape), "expression": torch.zeros(4, head.n_expression),
-            "texture": torch.zeros(4, head.n_texture), "lighting": torch.zeros(4, 9, 3)}
-    real["lighting"][:, 0] = 2.8
-    gen = SyntheticGenerator(head, real, cfg.synthetic, image_size, (0.5, 0.5, 0.5))
-    torch.manual_seed(0)
-    net = HeadNeRFModel(nerf_config(cfg, head), "proposed", feature_size)
-    optim = torch.optim.Adam(net.parameters(), lr=1e-4)
-    feats = RandomConvFeatures()
-    g = torch.Generator().manual_seed(0)
-    samples = [gen.sample(batch, g) for _ in range(steps + 1)]  # the head-model renders are not the model's cost
-
-    def step(s):
-        geometry, appearance = codes(s["params"], s["lighting"])
-        optim.zero_grad()
-        pred = net(geometry, appearance, s["camera"])
-        loss = head_model_loss(pred, composite(s["images"], s["masks"]), s["masks"], feats, {}, {},
-                               torch.zeros(batch, dtype=torch.bool))["total"]
-        loss.backward()
-        optim.step()
-
+    run = training_setup(compose_config(["scale=paper"]), image_size, feature_size, batch)
+    samples = [run.sample() for _ in range(steps + 1)]  # the head-model renders are not the model's cost
     with FlopCounterMode(display=False) as counter:
-        step(samples[0])
+        run.train_step(samples[0])
     flops = counter.get_total_flops()
     t0 = time.perf_counter()
     for s in samples[1:]:
-        step(s)
+        run.train_step(s)
     return (time.perf_counter() - t0) / steps, flops
 
 
@@ -91,6 +67,7 @@ def main() -> None:
     scale = batch / args.batch
     per_iter_256, per_iter_128 = flops_256 * scale, flops_128 * scale
     cpu_iter_256 = cpu_256 * scale
+    cpu_flops = per_iter_256 / cpu_iter_256  # FLOP/s this CPU sustains in a paper-size step
     jobs = [  # (what, count, iterations each, FLOPs per iteration)
         ("alpha pretraining (alpha1, alpha2)", 2, int(s.pretrain_alpha_iterations), per_iter_256),
         ("beta continuations (beta1-6 x alpha1/alpha2)", 12, int(s.pretrain_beta_iterations), per_iter_256),
@@ -107,7 +84,7 @@ def main() -> None:
              f"**{flops_256 / 1e9:.1f} GFLOP** (forward + backward, torch FlopCounterMode).",
              f"- Scaled to the paper batch of {batch}: {per_iter_256 / 1e12:.2f} TFLOP per iteration, "
              f"{cpu_iter_256:.0f} s per iteration on this CPU "
-             f"({per_iter_256 / cpu_iter_256 / 1e9:.0f} GFLOPS sustained).",
+             f"({cpu_flops / 1e9:.0f} GFLOPS sustained).",
              f"- At 128² (renderer experiment, 16² features): {per_iter_128 / 1e12:.2f} TFLOP per iteration.",
              "", "## Job graph", "", "| jobs | count | iterations each | PFLOP total | CPU-days here |",
              "| --- | --- | --- | --- | --- |"]
@@ -115,9 +92,9 @@ def main() -> None:
     for what, count, iters, per_iter in jobs:
         pflop = count * iters * per_iter / 1e15
         total += pflop
-        cpu_days = count * iters * per_iter / (per_iter_256 / cpu_iter_256) / 86400
+        cpu_days = count * iters * per_iter / cpu_flops / 86400
         lines.append(f"| {what} | {count} | {iters} | {pflop:.0f} | {cpu_days:.0f} |")
-    lines.append(f"| **total** | | | **{total:.0f}** | **{total * 1e15 / (per_iter_256 / cpu_iter_256) / 86400:.0f}** |")
+    lines.append(f"| **total** | | | **{total:.0f}** | **{total * 1e15 / cpu_flops / 86400:.0f}** |")
     lines += ["", f"## GPU-hours at {SUSTAINED:.0%} of peak", "",
               "| GPU | peak TFLOPS | GPU-hours (all jobs) | one alpha model | one avatar (1000 iterations) |",
               "| --- | --- | --- | --- | --- |"]
