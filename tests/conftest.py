@@ -2,6 +2,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -24,6 +26,27 @@ def _shared_data() -> Path:
 
 
 SHARED_DATA = _shared_data()
+
+
+def workflow_env(tracking_server: bool = False, **extra: str) -> dict:
+    """os.environ with this interpreter's bin first on PATH (the steps run `python -m ...`); without a tracking
+    server, MLFLOW_TRACKING_URI is dropped so that a run uses its own store under results/ (an earlier
+    mlflow.set_tracking_uri in this process exports it)."""
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", **extra)
+    if not tracking_server:
+        env.pop("MLFLOW_TRACKING_URI", None)
+    return env
+
+
+def run_snakemake(workdir: Path, *args: str, env: dict | None = None, timeout: int = 2400,
+                  check: bool = True) -> subprocess.CompletedProcess:
+    """The repository's workflow run in `workdir` as a user runs it; a failure shows the end of its output."""
+    cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+           *args]
+    proc = subprocess.run(cmd, env=env or workflow_env(), capture_output=True, text=True, timeout=timeout)
+    if check and proc.returncode != 0:
+        pytest.fail(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
 
 torch.set_num_threads(2)
 

@@ -17,10 +17,9 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO
+from conftest import REPO, run_snakemake, workflow_env
 
 SCRIPT = REPO / "cluster" / "local_cluster.sh"
-BIN = Path(sys.executable).parent
 # the synthetic subject's preprocessing chain at smoke scale: five steps, each a SLURM job
 SUBJECT_TARGETS = ["results/smoke/subjects/synth_talk/fit_rgb.json", "results/smoke/subjects/synth_talk/masks.json"]
 SPEECH_TARGETS = ["results/smoke/speech/lstm_reg/metrics.json", "results/smoke/speech/window/metrics.json"]
@@ -43,7 +42,7 @@ def cluster_env():
     up = _cluster("up")
     if up.returncode != 0:
         pytest.skip(f"the local cluster did not start: {up.stderr.strip()[-500:]}")
-    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}")
+    env = workflow_env(tracking_server=True)
     for line in up.stdout.splitlines():
         key, _, value = line.removeprefix("export ").partition("=")
         env[key] = value
@@ -53,11 +52,7 @@ def cluster_env():
 
 
 def snakemake(workdir: Path, env: dict, *args: str, timeout=1200) -> subprocess.CompletedProcess:
-    cmd = [str(BIN / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(workdir), *args]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
-    if proc.returncode != 0:
-        pytest.fail(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
-    return proc
+    return run_snakemake(workdir, *args, env=env, timeout=timeout)
 
 
 def local_env(env: dict) -> dict:
@@ -109,8 +104,7 @@ def test_slurm_run_gives_the_same_outputs_as_a_local_run(cluster_env, tmp_path):
 
 def test_paper_scale_dry_run_lists_the_full_graph_with_cluster_resources(tmp_path):
     """No cluster needed: the job graph of the whole reproduction at paper scale, as the SLURM profile submits it."""
-    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}")
-    env.pop("MLFLOW_TRACKING_URI", None)
+    env = workflow_env()
     # --cores: a dry run counts this machine's cores and clips threads to them; the cluster has more
     out = snakemake(tmp_path, env, "-n", "--profile", str(REPO / "profiles" / "slurm"), "--cores", "64",
                     "--config", "scale=paper", timeout=600)

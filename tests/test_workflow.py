@@ -1,26 +1,17 @@
 """The Snakemake workflow as a user runs it: dry run, a real smoke-scale run, and a no-op rerun."""
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO, SHARED_DATA
+from conftest import REPO, SHARED_DATA, run_snakemake
 
 
 def snakemake(workdir: Path, *args: str, check=True) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    env.pop("MLFLOW_TRACKING_URI", None)  # the workflow's own store under results/ (mlflow.set_tracking_uri sets it)
-    cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
-           "--cores", "2", "--config", "scale=smoke", "threads_per_job=1", *args]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=2400)
-    if check and proc.returncode != 0:
-        pytest.fail(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
-    return proc
+    return run_snakemake(workdir, "--cores", "2", "--config", "scale=smoke", "threads_per_job=1", *args, check=check)
 
 
 @pytest.fixture(scope="module")
