@@ -11,6 +11,8 @@ from omegaconf import DictConfig
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger("avatarlab")
+#: the default device of functions that take one
+CPU = torch.device("cpu")
 
 
 def resolve_device(cfg: DictConfig) -> torch.device:
@@ -27,6 +29,11 @@ def autocast(device: torch.device, enabled: bool):
     """Mixed precision (`amp: true`): float16 on CUDA (with a GradScaler), bfloat16 on the CPU."""
     return torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16,
                           enabled=enabled)
+
+
+def grad_scaler(device: torch.device, enabled: bool) -> torch.amp.GradScaler:
+    """Loss scaling for float16 on CUDA; a pass-through elsewhere (bfloat16 on the CPU needs none)."""
+    return torch.amp.GradScaler(device.type, enabled=enabled and device.type == "cuda")
 
 
 def setup_run(cfg: DictConfig) -> torch.device:

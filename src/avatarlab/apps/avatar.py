@@ -11,9 +11,10 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import OmegaConf
 
+from avatarlab.config import CPU
 from avatarlab.headmodel import load_head_model
 from avatarlab.render.camera import Camera
-from avatarlab.train.pretrain import HeadNeRFModel, codes, nerf_config
+from avatarlab.train.pretrain import HeadNeRFModel, codes, nerf_config, render_in_chunks
 
 log = logging.getLogger(__name__)
 
@@ -26,17 +27,13 @@ class Avatar:
 
     @torch.no_grad()
     def render(self, params: dict, camera: Camera, batch: int = 4) -> torch.Tensor:
-        """params: shape, expression, pose (B, 15), texture, lighting (B, 9, 3) -> images (B, 3, H, W) in [0, 1]."""
+        """params: shape, expression, pose (B, 15), texture, lighting (B, 9, 3) -> images (B, 3, H, W) in [0, 1],
+        rendered `batch` at a time on the net's device, returned on the CPU."""
         geometry, appearance = codes(params, params["lighting"])
-        out = []
-        for k in range(0, geometry.shape[0], batch):
-            s = slice(k, k + batch)
-            cam = Camera(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size)
-            out.append(self.net(geometry[s], appearance[s], cam, stratified=False).clamp(0, 1))
-        return torch.cat(out)
+        return render_in_chunks(self.net, geometry, appearance, camera, batch).clamp(0, 1)
 
 
-def load_avatar(path: str | Path) -> Avatar:
+def load_avatar(path: str | Path, device: torch.device = CPU) -> Avatar:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no avatar model (run the fine-tuning step first)")
@@ -47,7 +44,7 @@ def load_avatar(path: str | Path) -> Avatar:
     head = load_head_model(cfg.head_model)
     net = HeadNeRFModel(nerf_config(cfg, head), cfg.pretrain.renderer, int(cfg.scale.pretrain_feature_size))
     net.load_state_dict(state["model"])
-    net.eval()
+    net.eval().to(device)
     return Avatar(net, state["config"], int(cfg.scale.pretrain_image_size))
 
 
@@ -70,9 +67,9 @@ def load_fit(subject_dir: str | Path, image_size: int) -> dict:
     return out
 
 
-def open_avatar(apps) -> tuple[Avatar, dict]:
-    """The avatar of an `apps` config section and its subject's fit at the avatar's image size."""
-    avatar = load_avatar(apps.avatar)
+def open_avatar(apps, device: torch.device = CPU) -> tuple[Avatar, dict]:
+    """The avatar of an `apps` config section (on `device`) and its subject's fit at the avatar's image size."""
+    avatar = load_avatar(apps.avatar, device)
     return avatar, load_fit(apps.subject_dir, avatar.image_size)
 
 

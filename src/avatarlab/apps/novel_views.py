@@ -53,9 +53,9 @@ def sweeps(avatar, fit: dict, frame: int, cfg) -> tuple[list[np.ndarray], dict]:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     apps = cfg.apps
-    avatar, fit = open_avatar(apps)
+    avatar, fit = open_avatar(apps, device)
     frames = torch.nonzero(fit["fitted"]).flatten()
     frame = int(frames[-1])  # a test frame (the last fitted one)
     for key in ("neck_deg", "jaw_rad", "distance_offsets", "expression_values"):

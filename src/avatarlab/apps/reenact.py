@@ -36,9 +36,9 @@ def transfer_params(target: dict, source: dict, source_idx: torch.Tensor, identi
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     apps = cfg.apps
-    avatar, target = open_avatar(apps)
+    avatar, target = open_avatar(apps, device)
     source = load_fit(apps.source_dir, avatar.image_size)
     frames, meta = load_frame_stack(Path(apps.source_dir))
     idx = torch.nonzero(source["fitted"]).flatten()[: int(apps.max_frames)]

@@ -38,9 +38,9 @@ def jpeg_bytes(frames: np.ndarray, quality: int) -> list[int]:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     apps = cfg.apps
-    avatar, fit = open_avatar(apps)
+    avatar, fit = open_avatar(apps, device)
     frames, _ = load_frame_stack(Path(apps.subject_dir))
     idx = torch.nonzero(fit["fitted"]).flatten()[: int(apps.max_frames)]
     params, camera = select(fit, idx)

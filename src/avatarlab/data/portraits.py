@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig
 from PIL import Image
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.flame import clip_coefficients
 from avatarlab.headmodel.texture import default_lighting
@@ -38,7 +38,10 @@ def hair_mask(model) -> torch.Tensor:
 
 
 @torch.no_grad()
-def render_portraits(cfg: DictConfig):
+def render_portraits(cfg: DictConfig, device: torch.device = CPU, chunk: int = 16):
+    """The portraits' parameters, and a generator of their images (uint8 (n, H, W, 3), `chunk` at a time, so
+    70000 portraits at 512² never sit in memory at once). The head renders on `device`; every random draw comes
+    from one CPU generator, so the images do not depend on the device."""
     model = load_head_model(cfg.head_model)
     count, size = int(cfg.scale.portraits), int(cfg.scale.video_size)
     g = torch.Generator().manual_seed(int(cfg.seed) + 7)
@@ -49,43 +52,50 @@ def render_portraits(cfg: DictConfig):
     params["pose"][:, 6] = torch.rand(count, generator=g) * 0.25
     lighting = default_lighting(count) * (0.8 + 0.4 * torch.rand(count, 1, 1, generator=g))
     lighting[:, 1:4] += (torch.rand(count, 3, 3, generator=g) - 0.5) * 0.6
-    albedo = model.albedo(params["texture"])
     hair = hair_mask(model)
     colours = torch.from_numpy(HAIR_COLOURS).float()[torch.randint(0, len(HAIR_COLOURS), (count,), generator=g)]
-    albedo[:, hair] = colours[:, None] * (0.85 + 0.3 * torch.rand(count, int(hair.sum()), 1, generator=g))
+    hair_shade = colours[:, None] * (0.85 + 0.3 * torch.rand(count, int(hair.sum()), 1, generator=g))
     camera = orbit_camera(1.0 + 0.1 * torch.randn(count, generator=g), 0.0, 0.0, target=(0.0, 0.0, 0.0),
                           image_size=(size, size), batch=count, fov_height=0.36)
+    model.to(device)
     renderer = HeadRenderer(model, background=(0, 0, 0))
-    images = []
-    for start in range(0, count, 16):
-        s = slice(start, start + 16)
-        geo = model(params["shape"][s], params["expression"][s], params["pose"][s])
-        cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size)
-        out = renderer.mesh_renderer(geo.vertices, albedo[s], cam, lighting[s])
-        n = out.rgb.shape[0]
-        top, bottom = torch.rand(n, 3, 1, 1, generator=g), torch.rand(n, 3, 1, 1, generator=g)
-        ramp = torch.linspace(0, 1, size)[None, None, :, None]
-        background = top + (bottom - top) * ramp * (torch.rand(n, 1, 1, 1, generator=g) > 0.5)
-        rgb = out.rgb * out.mask + background * (1 - out.mask)
-        rgb = rgb + 0.015 * torch.randn(rgb.shape, generator=g)
-        images.append(rgb.clamp(0, 1))
-    images = torch.cat(images).permute(0, 2, 3, 1).numpy()
-    return (images * 255).round().astype(np.uint8), params, model.source
+
+    def images():
+        for start in range(0, count, chunk):
+            s = slice(start, start + chunk)
+            on = {k: v[s].to(device) for k, v in params.items()}
+            albedo = model.albedo(on["texture"])
+            albedo[:, hair.to(device)] = hair_shade[s].to(device)
+            geo = model(on["shape"], on["expression"], on["pose"])
+            cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size).to(device)
+            out = renderer.mesh_renderer(geo.vertices, albedo, cam, lighting[s].to(device))
+            rgb, mask = out.rgb.cpu(), out.mask.cpu()
+            n = rgb.shape[0]
+            top, bottom = torch.rand(n, 3, 1, 1, generator=g), torch.rand(n, 3, 1, 1, generator=g)
+            ramp = torch.linspace(0, 1, size)[None, None, :, None]
+            background = top + (bottom - top) * ramp * (torch.rand(n, 1, 1, 1, generator=g) > 0.5)
+            rgb = rgb * mask + background * (1 - mask)
+            rgb = rgb + 0.015 * torch.randn(rgb.shape, generator=g)
+            yield (rgb.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+
+    return params, images(), model.source
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
-    images, params, source = render_portraits(cfg)
+    device = setup_run(cfg)
+    params, chunks, source = render_portraits(cfg, device)
     out_dir = Path(cfg.subject.images_out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for i, image in enumerate(images):
-        with atomic_path(out_dir / f"{i:05d}.png") as tmp:
-            Image.fromarray(image).save(tmp, format="PNG")
+    i = 0
+    for chunk in chunks:
+        for image in chunk:
+            with atomic_path(out_dir / f"{i:05d}.png") as tmp:
+                Image.fromarray(image).save(tmp, format="PNG")
+            i += 1
     with atomic_path(cfg.subject.truth_out) as tmp:
         np.savez_compressed(tmp, **{k: v.numpy() for k, v in params.items()}, head_model=source)
-    log.info("%d portraits (stand-in for FFHQ) at %dx%d in %s", len(images), images.shape[2], images.shape[1],
-             out_dir)
+    log.info("%d portraits (stand-in for FFHQ) at %dx%d in %s", i, image.shape[1], image.shape[0], out_dir)
 
 
 if __name__ == "__main__":

@@ -16,9 +16,13 @@ from avatarlab.render.head_renderer import HeadRenderer
 
 
 class SyntheticGenerator:
-    def __init__(self, model, real_params: dict[str, torch.Tensor], cfg, image_size: int, background):
-        """real_params: shape (R,S), expression (R,E), texture (R,T), lighting (R,9,3) of the real image set."""
-        self.model = model
+    def __init__(self, model, real_params: dict[str, torch.Tensor], cfg, image_size: int, background,
+                 device: torch.device | None = None):
+        """real_params: shape (R,S), expression (R,E), texture (R,T), lighting (R,9,3) of the real image set.
+        The samples are drawn on the CPU (one generator: the same samples on every device) and rendered on
+        `device` (default: where the model is), where the returned tensors are."""
+        self.device = device if device is not None else model.faces.device
+        self.model = model.to(self.device)
         self.real = real_params
         self.cfg = cfg
         self.size = image_size
@@ -46,6 +50,7 @@ class SyntheticGenerator:
         pitch = self._uniform(n, -c.camera_pitch_deg, c.camera_pitch_deg, g)
         camera = orbit_camera(distance, yaw, pitch, image_size=(self.size, self.size), batch=n,
                               focal=float(c.focal_over_size) * self.size)
-        lighting = self.real["lighting"][pick]
+        lighting = self.real["lighting"][pick].to(self.device)
+        params, camera = {k: v.to(self.device) for k, v in params.items()}, camera.to(self.device)
         out = self.renderer(params, camera, lighting)
         return {"images": out.rgb, "masks": out.mask, "params": params, "lighting": lighting, "camera": camera}

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import atomic_path, write_video
@@ -76,7 +76,8 @@ def eyelid_component(model) -> int:
 
 
 @torch.no_grad()
-def render_subject(cfg: DictConfig) -> dict:
+def render_subject(cfg: DictConfig, device: torch.device = CPU) -> dict:
+    """The subject's frames and truth; the head renders on `device` (the random draws are on the CPU)."""
     sub = cfg.subject
     model = load_head_model(cfg.head_model)
     rng = np.random.default_rng(int(sub.seed))
@@ -93,17 +94,18 @@ def render_subject(cfg: DictConfig) -> dict:
     camera = orbit_camera(float(sub.camera_distance), float(sub.camera_yaw), float(sub.camera_pitch),
                           target=(0.0, -0.01, 0.0), image_size=(size, size), batch=frames,
                           fov_height=float(sub.fov_height))
+    model.to(device)
     renderer = HeadRenderer(model, background=tuple(sub.background), backface_shade=float(cfg.render.backface_shade))
     light = torch.from_numpy(lighting)[None].expand(frames, -1, -1)
     rgb, masks, depth, lms = [], [], [], []
     for start in range(0, frames, 16):
         s = slice(start, start + 16)
-        cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size)
-        out = renderer({k: v[s] for k, v in params.items()}, cam, light[s])
-        rgb.append(out.rgb)
-        masks.append(out.mask)
-        depth.append(out.depth)
-        lms.append(out.landmarks2d)
+        cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size).to(device)
+        out = renderer({k: v[s].to(device) for k, v in params.items()}, cam, light[s].to(device))
+        rgb.append(out.rgb.cpu())
+        masks.append(out.mask.cpu())
+        depth.append(out.depth.cpu())
+        lms.append(out.landmarks2d.cpu())
     rgb = torch.cat(rgb).permute(0, 2, 3, 1).numpy()
     noise = rng.normal(0, float(sub.image_noise), rgb.shape)
     video = (np.clip(rgb + noise, 0, 1) * 255).round().astype(np.uint8)
@@ -117,8 +119,8 @@ def render_subject(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
-    result = render_subject(cfg)
+    device = setup_run(cfg)
+    result = render_subject(cfg, device)
     write_video(cfg.subject.video_out, result.pop("video"), result["fps"])
     with atomic_path(cfg.subject.truth_out) as tmp:
         np.savez_compressed(tmp, **result)

@@ -15,6 +15,8 @@ import kornia
 import numpy as np
 import torch
 
+from avatarlab.config import CPU
+
 log = logging.getLogger(__name__)
 
 
@@ -30,7 +32,7 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:
 class LPIPS:
     """LPIPS (Zhang et al. 2018, VGG variant) with the backbone loaded from a local torchvision state dict."""
 
-    def __init__(self, backbone_path: str | Path):
+    def __init__(self, backbone_path: str | Path, device: torch.device = CPU):
         import lpips
         from torchvision.models import vgg16
 
@@ -41,10 +43,13 @@ class LPIPS:
         vgg = vgg16()
         vgg.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
         load_backbone(self.model, vgg.features)
+        self.model.to(device)
+        self.device = device
         self.name = f"lpips-vgg:{path.name}"
 
     @torch.no_grad()
     def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> float:
+        pred, target = pred.to(self.device), target.to(self.device)
         return float(self.model(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).mean())
 
 
@@ -59,12 +64,12 @@ def load_backbone(lpips_model, vgg_features: torch.nn.Sequential) -> None:
                 layer.bias.data.copy_(src.bias.data)
 
 
-def lpips_metric(backbone_path: str | None):
-    """An LPIPS callable, or None (reported missing) when no backbone weights are given."""
+def lpips_metric(backbone_path: str | None, device: torch.device = CPU):
+    """An LPIPS callable (computed on `device`), or None (reported missing) when no backbone weights are given."""
     if not backbone_path:
         log.warning("LPIPS: no VGG16 ImageNet weights given (finetune.lpips_backbone): LPIPS is reported missing")
         return None
-    return LPIPS(backbone_path)
+    return LPIPS(backbone_path, device)
 
 
 @lru_cache(maxsize=1)

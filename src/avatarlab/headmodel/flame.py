@@ -32,13 +32,15 @@ def blend_shapes(coefficients: torch.Tensor, directions: torch.Tensor) -> torch.
     return torch.einsum("bk,vck->bvc", coefficients, directions[..., : coefficients.shape[1]])
 
 
-def rigid_transforms(rotations: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor):
+def rigid_transforms(rotations: torch.Tensor, joints: torch.Tensor, parents: list[int] | torch.Tensor):
     """Forward kinematics.
 
-    rotations: (B, J, 3, 3) local rotations, joints: (B, J, 3) rest joint locations, parents: (J,) with -1 for the root.
+    rotations: (B, J, 3, 3) local rotations, joints: (B, J, 3) rest joint locations, parents: (J,) with -1 for the root
+    (a list: walking the chain then reads no device memory).
     Returns posed joints (B, J, 3) and the relative transforms (B, J, 4, 4) that map rest-pose points to posed ones.
     """
     batch, n_joints = joints.shape[:2]
+    parents = parents.tolist() if isinstance(parents, torch.Tensor) else list(parents)
     rel_joints = joints.clone()
     rel_joints[:, 1:] = joints[:, 1:] - joints[:, parents[1:]]
     local = torch.zeros(batch, n_joints, 4, 4, dtype=joints.dtype, device=joints.device)
@@ -47,7 +49,7 @@ def rigid_transforms(rotations: torch.Tensor, joints: torch.Tensor, parents: tor
     local[..., 3, 3] = 1.0
     chain = [local[:, 0]]
     for j in range(1, n_joints):
-        chain.append(chain[int(parents[j])] @ local[:, j])
+        chain.append(chain[parents[j]] @ local[:, j])
     world = torch.stack(chain, dim=1)
     posed_joints = world[..., :3, 3]
     # Remove the rest-pose joint location so the transform applies to rest-pose vertices.
@@ -72,7 +74,7 @@ def linear_blend_skinning(
     eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
     pose_feature = (rotations[:, 1:] - eye).reshape(batch, -1)
     v_posed = v_expr + torch.einsum("bp,vcp->bvc", pose_feature, data.posedirs)
-    posed_joints, transforms = rigid_transforms(rotations, joints, data.parents)
+    posed_joints, transforms = rigid_transforms(rotations, joints, data.parent_list)
     per_vertex = torch.einsum("vj,bjik->bvik", data.lbs_weights, transforms)
     vertices = torch.einsum("bvik,bvk->bvi", per_vertex[..., :3, :3], v_posed) + per_vertex[..., :3, 3]
     return vertices, posed_joints
@@ -104,6 +106,7 @@ class HeadModelBuffers(nn.Module):
         self.register_buffer("posedirs", as_t(data.posedirs))
         self.register_buffer("J_regressor", as_t(data.J_regressor))
         self.register_buffer("parents", torch.as_tensor(data.parents, dtype=torch.long))
+        self.parent_list = [int(p) for p in data.parents]
         self.register_buffer("lbs_weights", as_t(data.lbs_weights))
         self.register_buffer("lmk_faces_idx", torch.as_tensor(data.lmk_faces_idx, dtype=torch.long))
         self.register_buffer("lmk_bary", as_t(data.lmk_bary_coords))

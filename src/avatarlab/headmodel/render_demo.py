@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig
 from PIL import Image, ImageDraw
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_png
 from avatarlab.render.camera import orbit_camera
@@ -72,23 +72,23 @@ def label_grid(images: np.ndarray, rows, columns: int, label_width: int = 110) -
 
 
 @torch.no_grad()
-def render_sweep(cfg: DictConfig) -> np.ndarray:
-    model = load_head_model(cfg.head_model)
+def render_sweep(cfg: DictConfig, device: torch.device = CPU) -> np.ndarray:
+    model = load_head_model(cfg.head_model).to(device)
     size = int(cfg.demo.image_size)
     rows = sweep_rows(int(cfg.demo.columns))
     params, distance = build_batch(model, rows, int(cfg.demo.columns), float(cfg.demo.camera_distance))
     camera = orbit_camera(distance, 0.0, 0.0, focal=float(cfg.demo.camera_distance) * size / 0.32,
-                          image_size=(size, size))
+                          image_size=(size, size)).to(device)
     out = HeadRenderer(model, background=tuple(cfg.render.background),
                        backface_shade=float(cfg.render.backface_shade))(params, camera)
-    images = (out.rgb.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    images = (out.rgb.cpu().permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
     return label_grid(images, rows, int(cfg.demo.columns))
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
-    grid = render_sweep(cfg)
+    device = setup_run(cfg)
+    grid = render_sweep(cfg, device)
     write_png(cfg.demo.out, grid)
     log.info("wrote %s (%dx%d)", cfg.demo.out, grid.shape[1], grid.shape[0])
 

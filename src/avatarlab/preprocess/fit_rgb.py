@@ -20,7 +20,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, setup_run
 from avatarlab.headmodel import HeadModel, load_head_model
 from avatarlab.headmodel.flame import rodrigues
 from avatarlab.headmodel.texture import default_lighting
@@ -62,7 +62,7 @@ def rgb_fit_loss(pred_rgb, gt_rgb, mask, pred_lmk, gt_lmk, lmk_valid, shape, exp
     terms["expression_reg"] = weights.expression_reg * (expression**2).sum() / expression.shape[0]
     terms["texture_reg"] = weights.texture_reg * (texture**2).sum()
     rot = rodrigues(pose[:, 3:].reshape(-1, 4, 3))  # neck, jaw, eyes; rest pose theta* = 0 -> R = I
-    terms["pose_reg"] = weights.pose_reg * ((rot - torch.eye(3)) ** 2).sum() / pose.shape[0]
+    terms["pose_reg"] = weights.pose_reg * ((rot - torch.eye(3, device=rot.device)) ** 2).sum() / pose.shape[0]
     terms["eye_symmetry"] = weights.eye_symmetry * 0.5 * ((pose[:, 9:12] - pose[:, 12:15]) ** 2).sum() / pose.shape[0]
     terms["total"] = sum(terms.values())
     return terms
@@ -72,7 +72,7 @@ def pnp_extrinsics(model: HeadModel, landmarks: np.ndarray, K: np.ndarray):
     """Per-frame (rvec, tvec) from the neutral model's 3D landmarks and the detected 2D ones (OpenCV PnP)."""
     p = model.zeros(1)
     with torch.no_grad():
-        lm3d = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].numpy().astype(np.float64)
+        lm3d = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].cpu().numpy().astype(np.float64)
     model_width = np.linalg.norm(lm3d[0] - lm3d[16])
     rvecs, tvecs = [], []
     for pts in landmarks:
@@ -124,7 +124,7 @@ class RGBFitter:
 
     def render(self, shape, expression, pose, texture, lighting, focal, rot, trans):
         n = expression.shape[0]
-        K = intrinsics(1.0, (self.size, self.size), n)
+        K = intrinsics(1.0, (self.size, self.size), n).to(focal.device)
         K[:, 0, 0] = K[:, 1, 1] = focal.exp().expand(n)  # one shared focal length, optimised in log space
         camera = Camera(K=K, R=axis_angle_to_rotation_matrix(rot), t=trans, image_size=(self.size, self.size))
         params = {"shape": shape.expand(n, -1), "expression": expression, "pose": pose,
@@ -158,16 +158,19 @@ class RGBFitter:
         return {k: v.detach() for k, v in state.items()}, history
 
 
-def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs) -> dict:
-    return {"shape": torch.zeros(1, model.n_shape), "texture": torch.zeros(1, model.n_texture),
-            "lighting": default_lighting(1), "focal": torch.tensor([np.log(focal)], dtype=torch.float32),
-            "expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
-            "rot": torch.from_numpy(rvecs).float(), "trans": torch.from_numpy(tvecs).float()}
+def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs, device=None) -> dict:
+    state = {"shape": torch.zeros(1, model.n_shape), "texture": torch.zeros(1, model.n_texture),
+             "lighting": default_lighting(1), "focal": torch.tensor([np.log(focal)], dtype=torch.float32),
+             "expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
+             "rot": torch.from_numpy(rvecs).float(), "trans": torch.from_numpy(tvecs).float()}
+    return {k: v.to(device) for k, v in state.items()}
 
 
-def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found: np.ndarray, masks: np.ndarray):
+def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found: np.ndarray, masks: np.ndarray,
+              device: torch.device = CPU):
+    """Fits on `device` (the model, frames and parameters live there); the results stay there too."""
     fit = cfg.fit_rgb
-    model = load_head_model(cfg.head_model)
+    model = load_head_model(cfg.head_model).to(device)
     size = frames.shape[1]
     weights = FitWeights(**fit.weights)
     fitter = RGBFitter(model, size, weights, float(fit.lr), tuple(cfg.render.background))
@@ -180,19 +183,20 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     yaw = yaw_of(rvecs)
     n_key = max(1, min(int(fit.max_keyframes), len(idx) // 4 if len(idx) >= 4 else 1))
     key_local = choose_keyframes(yaw, n_key)
-    images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
-    mask_t = torch.from_numpy(masks[:, None]).float()
-    lm_t = torch.from_numpy(np.nan_to_num(landmarks)).float()
-    ones = torch.ones(len(frames))
+    images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
+    mask_t = torch.from_numpy(masks[:, None]).float().to(device)
+    lm_t = torch.from_numpy(np.nan_to_num(landmarks)).float().to(device)
+    ones = torch.ones(len(frames), device=device)
 
     n = len(frames)
-    result = {"expression": torch.zeros(n, model.n_expression), "pose": torch.zeros(n, 15),
-              "rot": torch.zeros(n, 3), "trans": torch.zeros(n, 3)}
+    result = {"expression": torch.zeros(n, model.n_expression, device=device),
+              "pose": torch.zeros(n, 15, device=device), "rot": torch.zeros(n, 3, device=device),
+              "trans": torch.zeros(n, 3, device=device)}
     fitted = np.zeros(n, bool)
     if fit.mode == "images":  # unrelated photographs: every image its own identity, camera and lighting
         return fit_images(fitter, model, fit, images, lm_t, mask_t, idx, rvecs, tvecs, focal0, result, fitted)
     key = idx[key_local]
-    state = initial_state(model, len(key), focal0, rvecs[key_local], tvecs[key_local])
+    state = initial_state(model, len(key), focal0, rvecs[key_local], tvecs[key_local], device)
     start = time.perf_counter()
     state, hist_key = fitter.optimize(images[key], lm_t[key], mask_t[key], ones[key], state,
                                       {"shape", "texture", "lighting", "focal", "expression", "pose"},
@@ -213,8 +217,8 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
         done = np.nonzero(fitted)[0]
         nearest = done[np.abs(done[None, :] - ids[:, None]).argmin(1)]
         init = dict(shared, expression=result["expression"][nearest].clone(), pose=result["pose"][nearest].clone(),
-                    rot=torch.from_numpy(np.array([rvec_of[i] for i in ids])).float(),
-                    trans=torch.from_numpy(np.array([tvec_of[i] for i in ids])).float())
+                    rot=torch.from_numpy(np.array([rvec_of[i] for i in ids])).float().to(device),
+                    trans=torch.from_numpy(np.array([tvec_of[i] for i in ids])).float().to(device))
         out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], ones[ids], init, {"expression", "pose"},
                                     int(fit.frame_iterations), int(fit.frame_rigid_iterations))
         for k in result:
@@ -226,9 +230,10 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
 
 
 def fit_images(fitter, model, fit, images, lm_t, mask_t, idx, rvecs, tvecs, focal0, result, fitted):
-    n = len(images)
-    shared = {"shape": torch.zeros(n, model.n_shape), "texture": torch.zeros(n, model.n_texture),
-              "lighting": default_lighting(n), "focal": torch.full((n,), float(np.log(focal0)))}
+    n, device = len(images), images.device
+    shared = {"shape": torch.zeros(n, model.n_shape, device=device),
+              "texture": torch.zeros(n, model.n_texture, device=device), "lighting": default_lighting(n, device=device),
+              "focal": torch.full((n,), float(np.log(focal0)), device=device)}
     start = time.perf_counter()
     hist = [0.0]
     chunk = int(fit.chunk)
@@ -237,8 +242,9 @@ def fit_images(fitter, model, fit, images, lm_t, mask_t, idx, rvecs, tvecs, foca
         local = np.arange(c, c + len(ids))
         init = {"shape": shared["shape"][ids], "texture": shared["texture"][ids], "lighting": shared["lighting"][ids],
                 "focal": shared["focal"][ids], "expression": result["expression"][ids], "pose": result["pose"][ids],
-                "rot": torch.from_numpy(rvecs[local]).float(), "trans": torch.from_numpy(tvecs[local]).float()}
-        out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], torch.ones(len(ids)), init,
+                "rot": torch.from_numpy(rvecs[local]).float().to(device),
+                "trans": torch.from_numpy(tvecs[local]).float().to(device)}
+        out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], torch.ones(len(ids), device=device), init,
                                     {"shape", "texture", "lighting", "focal", "expression", "pose"},
                                     int(fit.keyframe_iterations), int(fit.rigid_iterations))
         for k in shared:
@@ -257,9 +263,9 @@ def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, f
     out, camera = fitter.render(pick(shared["shape"]), result["expression"][ids], result["pose"][ids],
                                 pick(shared["texture"]), pick(shared["lighting"]), pick(shared["focal"]),
                                 result["rot"][ids], result["trans"][ids])
-    lm_err = np.linalg.norm(out.landmarks2d.numpy() - landmarks[ids], axis=-1)
+    lm_err = np.linalg.norm(out.landmarks2d.cpu().numpy() - landmarks[ids], axis=-1)
     iod = np.linalg.norm(landmarks[ids, 36] - landmarks[ids, 45], axis=-1)
-    m = torch.from_numpy(masks[ids, None]).float()
+    m = torch.from_numpy(masks[ids, None]).float().to(images.device)
     photo = ((out.rgb - images[ids]).abs() * m).sum() / (3 * m.sum())
     return out, camera, {"landmark_error_px": float(lm_err.mean()), "landmark_nme": float((lm_err.mean(1) / iod).mean()),
                          "photometric_l1": float(photo)}
@@ -313,16 +319,21 @@ def overlay_sheet(frames: np.ndarray, rendered: np.ndarray, landmarks: np.ndarra
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
     landmarks, found = load_landmarks(subject_dir)
     with np.load(subject_dir / "masks.npz") as mk:
         masks = mk["masks"]
-    model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks)
-    images = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
+    model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks,
+                                                                          device)
+    images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
     out, camera, report = evaluate_fit(fitter, shared, result, fitted, images, np.nan_to_num(landmarks), found,
                                        masks)
+    # the rest (truth comparison, files) on the CPU
+    model, camera = model.cpu(), camera.to("cpu")
+    shared, result = ({k: v.cpu() for k, v in d.items()} for d in (shared, result))
+    rendered_rgb = out.rgb.cpu()
     report.update({"frames": len(frames), "fitted": int(fitted.sum()), "keyframes": key.tolist(),
                    "seconds": seconds, "focal_px": float(shared["focal"].exp().mean()), "head_model": model.source,
                    "mode": cfg.fit_rgb.mode})
@@ -341,7 +352,7 @@ def main(cfg: DictConfig) -> None:
                  pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(), fitted=fitted, keyframes=key,
                  image_size=frames.shape[1])
     rendered = np.zeros_like(frames)
-    rendered[ids] = (out.rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
+    rendered[ids] = (rendered_rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
     write_png(subject_dir / "fit_rgb_overlay.png", overlay_sheet(frames[ids], rendered[ids], landmarks[ids]))
     write_json(subject_dir / "fit_rgb.json", report)
     log.info("RGB fit (%s mode) of %d frames in %.0fs: landmark error %.2f px (NME %.4f), photometric L1 %.4f%s",

@@ -69,7 +69,7 @@ def kabsch_init(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray):
     """Rigid (R, t) taking the neutral model's landmarks onto the lifted ones (Kabsch; no scale: depth is metric)."""
     p = model.zeros(1)
     with torch.no_grad():
-        src = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].numpy()[valid].astype(np.float64)
+        src = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].cpu().numpy()[valid].astype(np.float64)
     dst = lmk3d[valid]
     ms, md = src.mean(0), dst.mean(0)
     U, _, Vt = np.linalg.svd((dst - md).T @ (src - ms))
@@ -79,7 +79,7 @@ def kabsch_init(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray):
     from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
     rot = rotation_matrix_to_axis_angle(torch.from_numpy(R).float()[None])[0]
-    return rot, torch.from_numpy(t).float()
+    return rot, torch.from_numpy(t).float()  # on the CPU
 
 
 def robust_landmarks(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray, depth_range: float = 0.04,
@@ -93,7 +93,7 @@ def robust_landmarks(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray, dep
         rot, trans = kabsch_init(model, lmk3d, valid)
         p = model.zeros(1)
         with torch.no_grad():
-            src = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0]
+            src = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].cpu()
             moved = (src @ axis_angle_to_rotation_matrix(rot[None])[0].T + trans).numpy()
         keep = valid & (np.linalg.norm(moved - lmk3d, axis=1) < residual)
         if keep.sum() < 12 or (keep == valid).all():
@@ -109,11 +109,12 @@ def rmse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def rgbd_block_losses(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights) -> dict[str, torch.Tensor]:
     """Eqs. (2)-(4) for one frame: landmark RMSE, cloud-to-vertex chamfer, and point-to-mesh (point-to-plane).
 
-    lmk (L,3), verts_cam/normals_cam (V,3) camera frame, cloud (P,3). Nearest vertices are found without gradients.
+    lmk (L,3), verts_cam/normals_cam (V,3) camera frame, cloud (P,3). Nearest vertices are found without gradients,
+    with a KD-tree on the CPU whatever the device.
     """
-    tree = cKDTree(verts_cam.detach().numpy())
-    _, nn = tree.query(cloud.numpy(), k=1)
-    nn = torch.from_numpy(nn)
+    tree = cKDTree(verts_cam.detach().cpu().numpy())
+    _, nn = tree.query(cloud.cpu().numpy(), k=1)
+    nn = torch.from_numpy(nn).to(cloud.device)
     diff = cloud - verts_cam[nn]
     to_vertex = (diff**2).sum(-1).mean()
     # min over q in M is a distance to the surface: point-to-plane at the nearest vertex approximates it (the
@@ -139,14 +140,15 @@ class RGBDFitter:
         return verts, lmk
 
     def fit_frame(self, lmk_gt, lmk_valid, cloud, init_rot, init_trans, iterations):
+        """On the model's device; lmk_gt (L,3), lmk_valid (L,), cloud (P,3) numpy; init_rot/init_trans (3,)."""
         m = self.model
+        device = m.faces.device
         state = {"shape": torch.zeros(1, m.n_shape), "expression": torch.zeros(1, m.n_expression),
                  "pose": torch.zeros(1, 15), "rot": init_rot[None].clone(), "trans": init_trans[None].clone()}
-        for v in state.values():
-            v.requires_grad_(True)
+        state = {k: v.to(device).requires_grad_(True) for k, v in state.items()}
         faces = m.faces
-        lmk_gt, cloud = torch.from_numpy(lmk_gt).float(), torch.from_numpy(cloud).float()
-        valid = torch.from_numpy(lmk_valid)
+        lmk_gt, cloud = torch.from_numpy(lmk_gt).float().to(device), torch.from_numpy(cloud).float().to(device)
+        valid = torch.from_numpy(lmk_valid).to(device)
         history = {}
         blocks = (("block1", ("pose", "rot", "trans")),
                   ("block2", ("shape", "expression", "pose", "rot", "trans")),
@@ -174,16 +176,16 @@ class RGBDFitter:
 
 def fit_texture(model: HeadModel, state, image, mask, K, iterations: int, lr: float):
     """Eq. (5): texture and lighting by masked photometric L1 with the geometry and camera fixed."""
-    size = image.shape[:2]
+    size, device = image.shape[:2], state["rot"].device
     renderer = HeadRenderer(model)
-    camera = Camera(K=torch.from_numpy(K)[None].float(), R=axis_angle_to_rotation_matrix(state["rot"]),
+    camera = Camera(K=torch.from_numpy(K)[None].float().to(device), R=axis_angle_to_rotation_matrix(state["rot"]),
                     t=state["trans"], image_size=size)
-    texture = torch.zeros(1, model.n_texture, requires_grad=True)
-    lighting = default_lighting(1).requires_grad_(True)
-    target = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
-    m = torch.from_numpy(mask)[None, None].float()
+    texture = torch.zeros(1, model.n_texture, device=device, requires_grad=True)
+    lighting = default_lighting(1, device=device).requires_grad_(True)
+    target = (torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255).to(device)
+    m = torch.from_numpy(mask)[None, None].float().to(device)
     optim = torch.optim.Adam([texture, lighting], lr=lr)
-    loss = torch.tensor(0.0)
+    loss = torch.tensor(0.0, device=device)
     for _ in range(iterations):
         optim.zero_grad()
         params = {"shape": state["shape"], "expression": state["expression"], "pose": state["pose"],
@@ -197,7 +199,7 @@ def fit_texture(model: HeadModel, state, image, mask, K, iterations: int, lr: fl
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     fit = cfg.fit_rgbd
     truth_path = cfg.preprocess.truth
     if not truth_path or not Path(truth_path).is_file():
@@ -215,7 +217,7 @@ def main(cfg: DictConfig) -> None:
         video.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
     rng = np.random.default_rng(int(cfg.seed))
     frames = np.unique(np.linspace(0, len(truth["depth"]) - 1, int(fit.frames)).round().astype(int))
-    model = load_head_model(cfg.head_model)
+    model = load_head_model(cfg.head_model).to(device)
     fitter = RGBDFitter(model, float(fit.lr), tuple(fit.block_weights))
     use_detected = bool(fit.detected_landmarks)
     per_frame = []
@@ -240,17 +242,18 @@ def main(cfg: DictConfig) -> None:
         state, hist = fitter.fit_frame(lmk3d, valid, cloud, rot0, trans0, list(fit.block_iterations))
         texture, lighting, photo = fit_texture(model, state, video[i], truth["masks"][i], K,
                                                int(fit.texture_iterations), float(fit.lr))
+        as_t = lambda a: torch.from_numpy(a).to(device)  # noqa: E731
         with torch.no_grad():
             verts_fit, _ = fitter.geometry(state)
-            true = model(torch.from_numpy(truth["shape"])[None], torch.from_numpy(truth["expression"][i:i + 1]),
-                         torch.from_numpy(truth["pose"][i:i + 1])).vertices[0].numpy()
+            true = model(as_t(truth["shape"])[None], as_t(truth["expression"][i:i + 1]),
+                         as_t(truth["pose"][i:i + 1])).vertices[0].cpu().numpy()
         true_cam = true @ truth["R"][i].T + truth["t"][i]
         face = model.regions["face"].numpy()
-        vertex_err = 1000 * np.linalg.norm(verts_fit[0].numpy() - true_cam, axis=1)[face].mean()
-        neutral = lambda s: model(s, torch.zeros(1, model.n_expression), torch.zeros(1, 15)).vertices[0].numpy()  # noqa: E731
+        vertex_err = 1000 * np.linalg.norm(verts_fit[0].cpu().numpy() - true_cam, axis=1)[face].mean()
+        neutral = lambda s: model(s, torch.zeros(1, model.n_expression, device=device),
+                                  torch.zeros(1, 15, device=device)).vertices[0].cpu().numpy()
         with torch.no_grad():
-            shape_err = procrustes_error_mm(neutral(state["shape"])[face],
-                                            neutral(torch.from_numpy(truth["shape"])[None])[face])
+            shape_err = procrustes_error_mm(neutral(state["shape"])[face], neutral(as_t(truth["shape"])[None])[face])
         per_frame.append({"frame": int(i), "accuracy_mm": 1000 * np.sqrt(hist["loss3"]),
                           "landmark_rmse_mm": 1000 * hist["block1"], "vertex_error_mm": float(vertex_err),
                           "shape_error_mm": shape_err, "photometric_l1": photo, "points": int(len(cloud))})

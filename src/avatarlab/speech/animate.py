@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig
 
 from avatarlab.apps.avatar import load_avatar, load_fit, select, to_uint8
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json, write_png, write_video
 from avatarlab.speech.features import FeatureSpec, read_wav, windows, write_wav
@@ -31,14 +31,14 @@ from avatarlab.speech.visemes import NAMES, PHONEMES, viseme_basis, viseme_param
 log = logging.getLogger(__name__)
 
 
-def load_speech_model(path: str | Path, head) -> AudioToVisemes:
+def load_speech_model(path: str | Path, head, device: torch.device = CPU) -> AudioToVisemes:
     state = torch.load(path, map_location="cpu", weights_only=False)
     if state.get("kind") != "lstm":
         raise ValueError(f"{path}: audio animation needs the seed-000 (lstm) model, this is {state.get('kind')!r}")
     model = AudioToVisemes(state["n_features"], len(NAMES), len(PHONEMES), viseme_basis(head), state["channels"],
                            state["hidden"])
     model.load_state_dict(state["model"])
-    return model.eval()
+    return model.eval().to(device)
 
 
 def mux_audio(video: Path, wav: Path, out: Path) -> bool:
@@ -60,7 +60,7 @@ def mux_audio(video: Path, wav: Path, out: Path) -> bool:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     sp, apps = cfg.speech, cfg.apps
     out = Path(apps.out)
     wav = Path(sp.wav) if sp.get("wav") else out.with_suffix(".wav")
@@ -71,14 +71,14 @@ def main(cfg: DictConfig) -> None:
         write_wav(wav, utt.audio, utt.rate)
     audio, rate = read_wav(wav)
     head = load_head_model(cfg.head_model)
-    model = load_speech_model(sp.animate_model, head)
+    model = load_speech_model(sp.animate_model, head, device)
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
-    x = torch.from_numpy(windows(audio, rate, None, spec))[None]
+    x = torch.from_numpy(windows(audio, rate, None, spec))[None].to(device)
     with torch.no_grad():
-        weights, logits, _, _ = model(x)
+        weights = model(x)[0].cpu()
     expr_table, jaw_table = viseme_parameters(head)
     weights = weights[0]
-    avatar = load_avatar(apps.avatar)
+    avatar = load_avatar(apps.avatar, device)
     fit = load_fit(apps.subject_dir, avatar.image_size)
     frame = int(torch.nonzero(fit["fitted"]).flatten()[-1])
     params, camera = select(fit, [frame] * len(weights))

@@ -116,7 +116,7 @@ def align_phonemes(audio: np.ndarray, text: str, tts: Espeak, spec: FeatureSpec)
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     sp = cfg.speech
     clips = sorted(glob.glob(str(sp.grid_clips)))
     if not clips:
@@ -124,7 +124,7 @@ def main(cfg: DictConfig) -> None:
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
     head = load_head_model(cfg.head_model)
     basis = viseme_basis(head).numpy()
-    model = load_speech_model(sp.animate_model, head)
+    model = load_speech_model(sp.animate_model, head, device)
     tts = Espeak(sp.voice)
     per_clip, preds, truths, normed_preds = [], [], [], []
     for clip in map(Path, clips):
@@ -137,9 +137,10 @@ def main(cfg: DictConfig) -> None:
         found = np.array([d is not None for d in dets])
         lms = np.stack([d.landmarks if d is not None else np.zeros((68, 2), np.float32) for d in dets])
         lms[..., 1] *= -1  # image y down -> y up, as the head model's frontal landmarks
-        x = torch.from_numpy(windows(audio, spec.sample_rate, len(frames), spec))[None]
+        x = torch.from_numpy(windows(audio, spec.sample_rate, len(frames), spec))[None].to(device)
         with torch.no_grad():
             _, logits, pred, _ = model(x)
+        logits, pred = logits.cpu(), pred.cpu()
         pred = pred[0].numpy()[found]
         truth = align_to(lms[found], basis[0])
         offset = (truth - pred).mean(0, keepdims=True)  # the clip's identity vs the head model's neutral face

@@ -52,7 +52,7 @@ def speech_loss(weights, logits, landmarks, target_landmarks, target_phonemes, p
     p_vis = torch.softmax(logits, -1) @ phoneme_to_viseme
     reg = (weights * (1 - p_vis)).sum(-1).mean()
     total = land + lambda1 * ce + lambda2 * reg
-    return total, {"landmarks": float(land), "ce": float(ce), "reg": float(reg)}
+    return total, {"landmarks": float(land.detach()), "ce": float(ce.detach()), "reg": float(reg.detach())}
 
 
 class PhonemeWindowMLP(nn.Module):
@@ -74,14 +74,16 @@ class PhonemeWindowMLP(nn.Module):
     def windows(self, labels: torch.Tensor) -> torch.Tensor:
         """(T,) phoneme ids -> (T, k_x, P) one-hot windows centred on every frame (edges padded with silence)."""
         half = self.k_x // 2
-        padded = torch.cat([torch.zeros(half, dtype=labels.dtype), labels, torch.zeros(half, dtype=labels.dtype)])
-        idx = torch.arange(len(labels))[:, None] + torch.arange(self.k_x)[None]
+        silence = torch.zeros(half, dtype=labels.dtype, device=labels.device)
+        padded = torch.cat([silence, labels, silence])
+        idx = torch.arange(len(labels), device=labels.device)[:, None] + torch.arange(self.k_x, device=labels.device)[None]
         return nn.functional.one_hot(padded[idx], self.n_phonemes).float()
 
     @torch.no_grad()
     def predict_sequence(self, labels: torch.Tensor) -> torch.Tensor:
-        """(T,) -> (T, D): every frame's prediction averaged over the k_y outputs that cover it."""
-        out = self(self.windows(labels))  # (T, k_y, D): output j of window t is frame t - k_y//2 + j
+        """(T,) -> (T, D) on the CPU: every frame's prediction averaged over the k_y outputs that cover it."""
+        labels = labels.to(self.net[0].weight.device)
+        out = self(self.windows(labels)).float().cpu()  # (T, k_y, D): output j of window t is frame t - k_y//2 + j
         total = torch.zeros(len(labels), self.n_outputs)
         count = torch.zeros(len(labels), 1)
         for j in range(self.k_y):

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, autocast, grad_scaler, setup_run
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import FeatureSpec, windows
@@ -76,7 +76,8 @@ class Corpus:
         return [i for i in self.items if i["split"] == name]
 
 
-def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool):
+def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, device=CPU):
+    """Seed 000's model trained on `device`, with mixed precision if `cfg.amp` (the loss in float32)."""
     sp = cfg.speech
     train_items = corpus.split("train")
     feats = np.concatenate([i["windows"].reshape(-1, i["windows"].shape[-1]) for i in train_items])
@@ -84,9 +85,12 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool):
                            int(cfg.scale.speech_hidden))
     model.mean.copy_(torch.from_numpy(feats.mean(0)))
     model.std.copy_(torch.from_numpy(feats.std(0) + 1e-5))
+    model.to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr), weight_decay=float(sp.weight_decay))
     plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optim, factor=0.5, patience=5)
-    m = phoneme_to_viseme_matrix()
+    amp = bool(cfg.get("amp", False))
+    scaler = grad_scaler(device, amp)
+    m = phoneme_to_viseme_matrix().to(device)
     rng = np.random.default_rng(int(cfg.seed))
     chunk, batch = int(sp.chunk_frames), int(sp.batch)
     lambda2 = float(sp.lambda2) if regularize else 0.0
@@ -108,13 +112,16 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool):
                     lab = np.concatenate([lab, np.repeat(lab[-1:], pad)])
                     lm = np.concatenate([lm, np.repeat(lm[-1:], pad, 0)])
                 xs.append(w), ys.append(lm), ps.append(lab)
-            x = torch.from_numpy(np.stack(xs))
-            weights, logits, landmarks, _ = model(x)
-            loss, parts = speech_loss(weights, logits, landmarks, torch.from_numpy(np.stack(ys)),
-                                      torch.from_numpy(np.stack(ps)), m, float(sp.lambda1), lambda2)
+            x = torch.from_numpy(np.stack(xs)).to(device)
+            with autocast(device, amp):
+                outputs = model(x)
+            weights, logits, landmarks = (o.float() for o in outputs[:3])
+            loss, parts = speech_loss(weights, logits, landmarks, torch.from_numpy(np.stack(ys)).to(device),
+                                      torch.from_numpy(np.stack(ps)).to(device), m, float(sp.lambda1), lambda2)
             optim.zero_grad()
-            loss.backward()
-            optim.step()
+            scaler.scale(loss).backward()
+            scaler.step(optim)
+            scaler.update()
         val = evaluate_lstm(model, corpus.split("val"))
         plateau.step(val["lip_error_percent"])
         history.append({"epoch": epoch + 1, "loss": float(loss), **parts, "val_lip_error_percent":
@@ -126,9 +133,11 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool):
 @torch.no_grad()
 def evaluate_lstm(model: AudioToVisemes, items: list[dict]) -> dict:
     model.eval()
+    device = model.mean.device
     preds, truths, correct, total = [], [], 0, 0
     for item in items:
-        weights, logits, landmarks, _ = model(torch.from_numpy(item["windows"])[None])
+        _, logits, landmarks, _ = model(torch.from_numpy(item["windows"])[None].to(device))
+        logits, landmarks = logits.cpu(), landmarks.cpu()
         preds.append(landmarks[0].numpy())
         truths.append(item["landmarks"])
         correct += int((logits[0].argmax(-1).numpy() == item["labels"]).sum())
@@ -141,14 +150,18 @@ def evaluate_lstm(model: AudioToVisemes, items: list[dict]) -> dict:
 def streaming_cost(model: AudioToVisemes, item: dict) -> float:
     """Seconds of compute per step when frames arrive one by one (LSTM state carried over)."""
     model.eval()
-    state, x = None, torch.from_numpy(item["windows"])[None]
+    device = model.mean.device
+    state, x = None, torch.from_numpy(item["windows"])[None].to(device)
     start = time.perf_counter()
     for t in range(x.shape[1]):
         *_, state = model(x[:, t:t + 1], state)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)  # each frame's output is needed before the next arrives
     return (time.perf_counter() - start) / x.shape[1]
 
 
-def train_window(cfg, corpus: Corpus):
+def train_window(cfg, corpus: Corpus, device=CPU):
+    """Seed 001's model trained on `device`, with mixed precision if `cfg.amp`."""
     sp = cfg.speech
     train_items = corpus.split("train")
     flat = np.concatenate([i["landmarks"].reshape(len(i["landmarks"]), -1) for i in train_items])
@@ -157,7 +170,10 @@ def train_window(cfg, corpus: Corpus):
     n_pca = int(cfg.scale.speech_pca)
     comps, sigma = vt[:n_pca], sv[:n_pca] / np.sqrt(len(flat) - 1)
     model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.scale.speech_window_hidden))
+    model.to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr))
+    amp = bool(cfg.get("amp", False))
+    scaler = grad_scaler(device, amp)
     xs, ys = [], []
     half = model.k_y // 2
     for item in train_items:
@@ -166,7 +182,7 @@ def train_window(cfg, corpus: Corpus):
         padded = np.concatenate([np.repeat(coef[:1], half, 0), coef, np.repeat(coef[-1:], half, 0)])
         xs.append(model.windows(labels))
         ys.append(np.stack([padded[t:t + model.k_y] for t in range(len(labels))]))
-    x, y = torch.cat(xs), torch.from_numpy(np.concatenate(ys)).float()
+    x, y = torch.cat(xs).to(device), torch.from_numpy(np.concatenate(ys)).float().to(device)
     g = torch.Generator().manual_seed(int(cfg.seed))
     history = []
     for epoch in range(int(cfg.scale.speech_epochs)):
@@ -174,10 +190,13 @@ def train_window(cfg, corpus: Corpus):
         perm = torch.randperm(len(x), generator=g)
         for k in range(0, len(x), int(sp.window_batch)):
             idx = perm[k:k + int(sp.window_batch)]
-            loss = ((model(x[idx]) - y[idx]) ** 2).mean()
+            with autocast(device, amp):
+                pred = model(x[idx])
+            loss = ((pred.float() - y[idx]) ** 2).mean()
             optim.zero_grad()
-            loss.backward()
-            optim.step()
+            scaler.scale(loss).backward()
+            scaler.step(optim)
+            scaler.update()
         history.append({"epoch": epoch + 1, "loss": float(loss)})
     pca = {"mean": mean, "components": comps, "sigma": sigma}
     return model, pca, history
@@ -240,7 +259,7 @@ def retargeted_landmarks(head, rig: np.ndarray) -> np.ndarray:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     sp = cfg.speech
     head = load_head_model(cfg.head_model)
     basis = viseme_basis(head)
@@ -252,7 +271,7 @@ def main(cfg: DictConfig) -> None:
     start = time.perf_counter()
     with start_run(cfg, "speech", name, {"speech_model": name}, bool(cfg.tracking.enabled)) as mlf:
         if sp.model == "lstm":
-            model, history = train_lstm(cfg, corpus, basis, bool(sp.regularize))
+            model, history = train_lstm(cfg, corpus, basis, bool(sp.regularize), device)
             seconds = time.perf_counter() - start
             metrics = evaluate_lstm(model, test)
             step = streaming_cost(model, test[0])
@@ -262,7 +281,7 @@ def main(cfg: DictConfig) -> None:
             state = {"model": model.state_dict(), "kind": "lstm", "n_features": int(model.mean.shape[0]),
                      "channels": int(cfg.scale.speech_channels), "hidden": int(cfg.scale.speech_hidden)}
         elif sp.model == "window":
-            model, pca, history = train_window(cfg, corpus)
+            model, pca, history = train_window(cfg, corpus, device)
             seconds = time.perf_counter() - start
             metrics = evaluate_window(model, pca, test)
             # retarget the predicted reference-face motion onto the head model's rig and measure what survives
@@ -281,6 +300,7 @@ def main(cfg: DictConfig) -> None:
             state = {"model": model.state_dict(), "kind": "window", "pca": pca}
         else:
             raise ValueError(f"speech.model={sp.model!r}: expected lstm or window")
+        state["model"] = {k: v.cpu() for k, v in state["model"].items()}  # loadable without the training device
         state["config"] = OmegaConf.to_container(cfg, resolve=True)
         with atomic_path(out_dir / "model.pt") as tmp:
             torch.save(state, tmp)

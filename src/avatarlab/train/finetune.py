@@ -92,7 +92,7 @@ def _u8(image: torch.Tensor) -> np.ndarray:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     ft = cfg.finetune
     subject_dir = Path(ft.subject_dir)
     _, meta = load_frame_stack(subject_dir)
@@ -117,7 +117,7 @@ def main(cfg: DictConfig) -> None:
         result = train(run_cfg)
         test = RealImageSet(subject_dir, int(cfg.scale.pretrain_image_size), test_idx.tolist())
         metrics, pred, target = evaluate_avatar(result["net"], test, int(ft.mouth_open_frames),
-                                                lpips_metric(ft.lpips_backbone))
+                                                lpips_metric(ft.lpips_backbone, device))
         out_dir = Path(ft.out_dir)
         with atomic_path(out_dir / "model.pt") as tmp:
             torch.save({"model": result["net"].state_dict(), "step": result["step"],

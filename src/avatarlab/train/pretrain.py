@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
-from avatarlab.config import CONF_DIR, autocast, resolve_device, setup_run
+from avatarlab.config import CONF_DIR, autocast, grad_scaler, resolve_device, setup_run
 from avatarlab.data.schedule import scaled_schedule
 from avatarlab.data.subject_files import load_frame_stack
 from avatarlab.data.synthetic import SyntheticGenerator
@@ -161,9 +161,10 @@ def evaluate_on_head_model(net: HeadNeRFModel, generator: SyntheticGenerator, co
     g = torch.Generator().manual_seed(10_000 + seed)
     batch = generator.sample(count, g)
     pred = render_in_chunks(net, *codes(batch["params"], batch["lighting"]), batch["camera"])
-    target = composite(batch["images"], batch["masks"])
-    pred_c = composite(pred, batch["masks"])
-    mse_in = (((pred - batch["images"]) * batch["masks"]) ** 2).sum() / (3 * batch["masks"].sum())
+    images, masks = batch["images"].cpu(), batch["masks"].cpu()
+    target = composite(images, masks)
+    pred_c = composite(pred, masks)
+    mse_in = (((pred - images) * masks) ** 2).sum() / (3 * masks.sum())
     return {"psnr": float(kornia.metrics.psnr(pred_c, target, 1.0)),
             "psnr_head": float(-10 * torch.log10(mse_in)),
             "ssim": float(kornia.metrics.ssim(pred_c, target, 11).mean())}, pred_c, target
@@ -210,16 +211,17 @@ def train(cfg: DictConfig) -> dict:
     size = int(cfg.scale.pretrain_image_size)
     real = RealImageSet(Path(pre.real_subject_dir), size, pre.get("real_indices"), pre.get("real_interpolated"))
     background = tuple(cfg.render.background)
-    synth = SyntheticGenerator(head, real.params, cfg.synthetic, size, background)
+    device, amp = resolve_device(cfg), bool(cfg.get("amp", False))
+    synth = SyntheticGenerator(head, real.params, cfg.synthetic, size, background, device)
     synth_mouth = None
     if schedule.mouth_from is not None:
-        synth_mouth = SyntheticGenerator(load_head_model(mouth_cfg), real.params, cfg.synthetic, size, background)
+        synth_mouth = SyntheticGenerator(load_head_model(mouth_cfg), real.params, cfg.synthetic, size, background,
+                                         device)
     torch.manual_seed(int(cfg.seed))
     net = HeadNeRFModel(nerf_config(cfg, head), pre.renderer, int(cfg.scale.pretrain_feature_size))
     fixed = set(pre.get("fixed_codes") or [])  # fine-tuning keeps the subject's shape and texture fixed
     dims = {"shape": head.n_shape, "pose": 12, "expression": head.n_expression, "texture": head.n_texture,
             "lighting": 27}
-    device, amp = resolve_device(cfg), bool(cfg.get("amp", False))
     net.to(device)
     offsets = torch.nn.ParameterDict({k: torch.zeros(len(real), d) for k, d in dims.items() if k not in fixed}).to(device)
     for p in net.nerf.frozen_prefix(int(pre.get("freeze_layers") or 0)):
@@ -227,7 +229,7 @@ def train(cfg: DictConfig) -> dict:
     optim = torch.optim.Adam([{"params": [p for p in net.parameters() if p.requires_grad]},
                               {"params": offsets.parameters(), "lr": float(pre.offset_lr)}], lr=float(pre.lr))
     features = perceptual_network(cfg.model.vgg16_weights).to(device)
-    scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
+    scaler = grad_scaler(device, amp)
     g = torch.Generator().manual_seed(int(cfg.seed))
     step, start_step = 0, 0
     history: list[dict] = []
@@ -280,16 +282,18 @@ def train(cfg: DictConfig) -> dict:
             r_img, r_mask, r_K = real.images[real_idx], real.masks[real_idx], real.K[real_idx]
             if strat.z_aug:
                 r_img, r_mask, r_K = z_augment(r_img, r_mask, r_K, g, *cfg.pretrain.z_aug_range, p=0.5)
-            images.append(r_img), masks.append(r_mask), lights.append(real.params["lighting"][real_idx])
-            params.append({k: real.params[k][real_idx] for k in ("shape", "expression", "pose", "texture")})
-            cams = _cat_cameras(cams, Camera(K=r_K, R=real.R[real_idx], t=real.t[real_idx], image_size=(size, size)))
+            images.append(r_img.to(device)), masks.append(r_mask.to(device))
+            lights.append(real.params["lighting"][real_idx].to(device))
+            params.append({k: real.params[k][real_idx].to(device) for k in ("shape", "expression", "pose", "texture")})
+            cams = _cat_cameras(cams, Camera(K=r_K, R=real.R[real_idx], t=real.t[real_idx],
+                                             image_size=(size, size)).to(device))
             is_real.append(torch.ones(n_real, dtype=torch.bool))
-        # the batch is drawn on the CPU (head-model renders, real frames) and trained on `device`
-        images, masks = torch.cat(images).to(device), torch.cat(masks).to(device)
-        merged = {k: torch.cat([p_[k] for p_ in params]).to(device) for k in ("shape", "expression", "pose", "texture")}
-        lighting = torch.cat(lights).to(device)
+        # the batch is drawn on the CPU (random choices, real frames), rendered (synthetic samples) and trained on
+        # `device`
+        images, masks = torch.cat(images), torch.cat(masks)
+        merged = {k: torch.cat([p_[k] for p_ in params]) for k in ("shape", "expression", "pose", "texture")}
+        lighting = torch.cat(lights)
         real_mask = torch.cat(is_real).to(device)
-        cams = cams.to(device)
         batch_offsets = {k: torch.cat([torch.zeros(n_syn, offsets[k].shape[1], device=device),
                                        offsets[k][real_idx.to(device)]])
                          for k in OFFSET_KEYS if k in offsets}

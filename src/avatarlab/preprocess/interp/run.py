@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.config import CONF_DIR, CPU, autocast, grad_scaler, setup_run
 from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.preprocess.frames import load_frame_stack
 from avatarlab.preprocess.interp.network import XVFILite
@@ -44,10 +44,14 @@ def training_triplets(kept: np.ndarray) -> np.ndarray:
     return np.stack([kept[:-2], kept[1:-1], kept[2:]], 1) if len(kept) >= 3 else np.zeros((0, 3), int)
 
 
-def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path) -> tuple[XVFILite, list[float]]:
+def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
+          device: torch.device = CPU) -> tuple[XVFILite, list[float]]:
+    """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`."""
     torch.manual_seed(int(cfg.seed))
-    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales))
+    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(cfg.interp.lr))
+    amp = bool(cfg.get("amp", False))
+    scaler = grad_scaler(device, amp)
     rng = np.random.default_rng(int(cfg.seed))
     step, losses = 0, []
     fingerprint = f"{OmegaConf.to_yaml(cfg.interp)}|seed={cfg.seed}|frames={len(frames)}|triplets={len(triplets)}"
@@ -55,11 +59,13 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path) -> 
         log.warning("%s was written with other settings: starting afresh", checkpoint)
         checkpoint.unlink()
     if checkpoint.is_file():
-        state = torch.load(checkpoint, weights_only=False)
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
         model.load_state_dict(state["model"])
         optim.load_state_dict(state["optim"])
+        if state.get("scaler"):
+            scaler.load_state_dict(state["scaler"])
         rng.bit_generator.state = state["rng"]
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
         step, losses = state["step"], state["losses"]
         log.info("resuming interpolation training at step %d from %s", step, checkpoint)
     iterations, every = int(cfg.interp.iterations), int(cfg.interp.checkpoint_every)
@@ -67,15 +73,17 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path) -> 
     with tqdm(total=iterations, initial=step, desc="xvfi", unit="it", disable=None) as bar:
         while step < iterations and len(triplets):
             pick = triplets[rng.integers(0, len(triplets), batch)]
-            a, mid, b = (frames[pick[:, k]] for k in range(3))
+            a, mid, b = (frames[pick[:, k]].to(device) for k in range(3))
             if rng.random() < 0.5:  # time reversal and mirror: the same task seen differently
                 a, b = b, a
             if rng.random() < 0.5:
                 a, mid, b = (x.flip(-1) for x in (a, mid, b))
             optim.zero_grad()
-            loss = (model(a, b, 0.5) - mid).abs().mean()
-            loss.backward()
-            optim.step()
+            with autocast(device, amp):
+                loss = (model(a, b, 0.5).float() - mid).abs().mean()
+            scaler.scale(loss).backward()
+            scaler.step(optim)
+            scaler.update()
             losses.append(float(loss.detach()))
             step += 1
             bar.update(1)
@@ -83,6 +91,7 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path) -> 
                 with atomic_path(checkpoint) as tmp:
                     torch.save({"model": model.state_dict(), "optim": optim.state_dict(), "rng": rng.bit_generator.state,
                                 "torch_rng": torch.get_rng_state(), "step": step, "losses": losses,
+                                "scaler": scaler.state_dict() if scaler.is_enabled() else None,
                                 "fingerprint": fingerprint}, tmp)
     return model, losses
 
@@ -94,7 +103,7 @@ def quality(pred: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+    device = setup_run(cfg)
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames_np, meta = load_frame_stack(subject_dir)
     frames = to_tensor(frames_np)
@@ -102,11 +111,12 @@ def main(cfg: DictConfig) -> None:
     if len(held) == 0:
         raise ValueError(f"{subject_dir}: {len(frames)} frames are too few to hold any frame out")
     start = time.perf_counter()
-    model, losses = train(frames, training_triplets(kept), cfg, subject_dir / "interp_checkpoint.pt")
+    model, losses = train(frames, training_triplets(kept), cfg, subject_dir / "interp_checkpoint.pt", device)
     train_seconds = time.perf_counter() - start
     model.eval()
     with torch.no_grad():
-        xvfi = torch.cat([model(frames[held - 1][k:k + 8], frames[held + 1][k:k + 8]) for k in range(0, len(held), 8)])
+        xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).float().cpu()
+                          for k in range(0, len(held), 8)])
     flow = to_tensor(np.stack([interpolate_farneback(frames_np[i - 1], frames_np[i + 1]) for i in held]))
     fade = 0.5 * (frames[held - 1] + frames[held + 1])
     target = frames[held]
