@@ -56,6 +56,14 @@ def compose_config(overrides: list[str] | None = None):
         return compose(config_name="config", overrides=overrides or [])
 
 
+def interp_config(**extra):
+    """A small interpolation-training config (8 channels, 2 scales, 6 steps of batch 2, checkpoints every 3)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.create({"seed": 0, "interp": {"width": 8, "scales": 2, "lr": 1e-3, "batch": 2, "iterations": 6,
+                                                   "checkpoint_every": 3}, **extra})
+
+
 @pytest.fixture(scope="session")
 def head_data():
     return load_procedural_head(ProceduralSpec())

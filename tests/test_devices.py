@@ -10,9 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
-from conftest import compose_config
+from conftest import compose_config, interp_config
 
 META = torch.device("meta")
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
@@ -64,18 +63,13 @@ def test_networks_stay_on_the_device():
     assert image.shape == (2, 3, 64, 64) and image.device == META
 
 
-def _interp_cfg(**extra):
-    return OmegaConf.create({"seed": 0, "interp": {"width": 8, "scales": 2, "lr": 1e-3, "batch": 2, "iterations": 6,
-                                                   "checkpoint_every": 3}, **extra})
-
-
 def test_interpolation_trains_in_mixed_precision_like_float32(tmp_path):
     from avatarlab.preprocess.interp.run import train, training_triplets
 
     frames = torch.rand(9, 3, 16, 16, generator=torch.Generator().manual_seed(0))
     triplets = training_triplets(np.arange(0, 9, 2))
-    _, full = train(frames, triplets, _interp_cfg(), tmp_path / "fp32.pt")
-    model, mixed = train(frames, triplets, _interp_cfg(amp=True), tmp_path / "amp.pt")
+    _, full = train(frames, triplets, interp_config(), tmp_path / "fp32.pt")
+    model, mixed = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt")
     assert len(mixed) == 6 and np.isfinite(mixed).all()
     assert mixed != full  # bfloat16 really ran
     np.testing.assert_allclose(mixed, full, rtol=0.05)
@@ -122,11 +116,11 @@ def test_fits_renders_and_networks_on_cuda_match_the_cpu(tmp_path, head_model):
 
     frames = torch.rand(9, 3, 16, 16, generator=torch.Generator().manual_seed(0))
     triplets = training_triplets(np.arange(0, 9, 2))
-    _, cpu_losses = train(frames, triplets, _interp_cfg(), tmp_path / "cpu.pt", torch.device("cpu"))
-    model, gpu_losses = train(frames, triplets, _interp_cfg(), tmp_path / "gpu.pt", torch.device("cuda"))
+    _, cpu_losses = train(frames, triplets, interp_config(), tmp_path / "cpu.pt", torch.device("cpu"))
+    model, gpu_losses = train(frames, triplets, interp_config(), tmp_path / "gpu.pt", torch.device("cuda"))
     assert next(model.parameters()).device.type == "cuda"
     np.testing.assert_allclose(gpu_losses, cpu_losses, rtol=1e-3)
-    _, amp_losses = train(frames, triplets, _interp_cfg(amp=True), tmp_path / "amp.pt", torch.device("cuda"))
+    _, amp_losses = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt", torch.device("cuda"))
     np.testing.assert_allclose(amp_losses, cpu_losses, rtol=0.05)
 
 

@@ -11,6 +11,7 @@ from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal
 from avatarlab.render import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.mesh_renderer import vertex_normals
+from conftest import interp_config
 
 
 def test_bad_inputs_are_named(tmp_path):
@@ -136,8 +137,7 @@ def test_interpolation_training_resumes_to_the_same_result(tmp_path):
 
     from avatarlab.preprocess.interp.run import train, training_triplets
 
-    cfg = OmegaConf.create({"seed": 0, "interp": {"width": 8, "scales": 2, "lr": 1e-3, "batch": 2, "iterations": 6,
-                                                  "checkpoint_every": 3}})
+    cfg = interp_config()
     frames = torch.rand(9, 3, 16, 16)
     triplets = training_triplets(np.arange(0, 9, 2))
     full, _ = train(frames, triplets, cfg, tmp_path / "full.pt")

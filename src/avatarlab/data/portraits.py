@@ -7,6 +7,7 @@ subject with `source: portraits`). Replace it by real images with `source: image
 """
 from __future__ import annotations
 
+import itertools
 import logging
 from pathlib import Path
 
@@ -87,15 +88,12 @@ def main(cfg: DictConfig) -> None:
     params, chunks, source = render_portraits(cfg, device)
     out_dir = Path(cfg.subject.images_out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    i = 0
-    for chunk in chunks:
-        for image in chunk:
-            with atomic_path(out_dir / f"{i:05d}.png") as tmp:
-                Image.fromarray(image).save(tmp, format="PNG")
-            i += 1
+    for i, image in enumerate(itertools.chain.from_iterable(chunks)):
+        with atomic_path(out_dir / f"{i:05d}.png") as tmp:
+            Image.fromarray(image).save(tmp, format="PNG")
     with atomic_path(cfg.subject.truth_out) as tmp:
         np.savez_compressed(tmp, **{k: v.numpy() for k, v in params.items()}, head_model=source)
-    log.info("%d portraits (stand-in for FFHQ) at %dx%d in %s", i, image.shape[1], image.shape[0], out_dir)
+    log.info("%d portraits (stand-in for FFHQ) at %dx%d in %s", i + 1, image.shape[1], image.shape[0], out_dir)
 
 
 if __name__ == "__main__":

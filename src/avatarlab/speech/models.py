@@ -83,7 +83,7 @@ class PhonemeWindowMLP(nn.Module):
     def predict_sequence(self, labels: torch.Tensor) -> torch.Tensor:
         """(T,) -> (T, D) on the CPU: every frame's prediction averaged over the k_y outputs that cover it."""
         labels = labels.to(self.net[0].weight.device)
-        out = self(self.windows(labels)).float().cpu()  # (T, k_y, D): output j of window t is frame t - k_y//2 + j
+        out = self(self.windows(labels)).cpu()  # (T, k_y, D): output j of window t is frame t - k_y//2 + j
         total = torch.zeros(len(labels), self.n_outputs)
         count = torch.zeros(len(labels), 1)
         for j in range(self.k_y):

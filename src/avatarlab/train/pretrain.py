@@ -300,7 +300,8 @@ def train(cfg: DictConfig) -> dict:
         geometry, appearance = codes(merged, lighting, batch_offsets)
         optim.zero_grad()
         with autocast(device, amp):
-            pred = net(geometry, appearance, cams).float()  # the loss in float32 (mixed precision: the net only)
+            # in low precision: the net and the perceptual network's convolutions; the loss sums in float32
+            pred = net(geometry, appearance, cams).float()
             target = composite(images, masks)
             terms = head_model_loss(pred, target, masks, features, batch_offsets, offset_w, real_mask,
                                     float(cfg.model.w_mse), float(cfg.model.w_perceptual))

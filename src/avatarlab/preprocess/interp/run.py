@@ -115,7 +115,7 @@ def main(cfg: DictConfig) -> None:
     train_seconds = time.perf_counter() - start
     model.eval()
     with torch.no_grad():
-        xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).float().cpu()
+        xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).cpu()
                           for k in range(0, len(held), 8)])
     flow = to_tensor(np.stack([interpolate_farneback(frames_np[i - 1], frames_np[i + 1]) for i in held]))
     fade = 0.5 * (frames[held - 1] + frames[held + 1])
