@@ -5,7 +5,8 @@ from omegaconf import OmegaConf
 
 from avatarlab.cli import COMMANDS, main as cli_main
 from avatarlab.headmodel import HeadModelFileError, load_head_model_data
-from conftest import CONF_DIR, compose_config
+from avatarlab.config import CONF_DIR
+from helpers import compose_config
 
 SCALES = sorted(p.stem for p in (CONF_DIR / "scale").glob("*.yaml"))
 HEAD_MODELS = sorted(p.stem for p in (CONF_DIR / "head_model").glob("*.yaml"))
