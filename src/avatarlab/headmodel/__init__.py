@@ -4,8 +4,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from avatarlab.headmodel.flame import (COEFFICIENT_RANGE, POSE_DIM, POSE_JOINTS, HeadModel,  # noqa: F401
-                                       HeadOutput, clip_coefficients)
+from avatarlab.headmodel.flame import COEFFICIENT_RANGE, POSE_DIM, POSE_JOINTS, HeadModel, HeadOutput, clip_coefficients  # noqa: F401
 from avatarlab.headmodel.procedural import ProceduralSpec, load_procedural_head
 from avatarlab.headmodel.sources import HeadModelData, HeadModelFileError, load_flame2020  # noqa: F401
 

@@ -10,12 +10,11 @@ from __future__ import annotations
 import logging
 import time
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.flame import clip_coefficients
 from avatarlab.io import write_json, write_png
@@ -24,6 +23,7 @@ from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'render', 'dlib_check')  # the config sections this step reads (avatarlab/entry.py)
 LANDMARK_GROUPS = {"jaw": range(0, 17), "brows": range(17, 27), "nose": range(27, 36), "eyes": range(36, 48),
                    "mouth": range(48, 68)}
 
@@ -76,9 +76,8 @@ def overlay(images, truth, detections, count: int = 8) -> np.ndarray:
     return np.concatenate(tiles, axis=1)
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     generator = torch.Generator().manual_seed(int(cfg.seed))
     start = time.perf_counter()
     images, truth, source = render_random_heads(cfg, int(cfg.dlib_check.renders), generator)

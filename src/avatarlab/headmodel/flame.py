@@ -28,8 +28,11 @@ def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
 
 
 def blend_shapes(coefficients: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-    """coefficients: (B, K), directions: (V, 3, K) -> offsets (B, V, 3)."""
-    return torch.einsum("bk,vck->bvc", coefficients, directions[..., : coefficients.shape[1]])
+    """coefficients: (B, K), directions: (V, 3, K) -> offsets (B, V, 3). One matrix product over the (V*3, K) view
+    of the directions (no copy of the large basis)."""
+    v, c, k = directions.shape
+    flat = directions.reshape(v * c, k)[:, : coefficients.shape[1]]
+    return torch.nn.functional.linear(coefficients, flat).reshape(-1, v, c)
 
 
 def rigid_transforms(rotations: torch.Tensor, joints: torch.Tensor, parents: list[int] | torch.Tensor):
@@ -73,10 +76,12 @@ def linear_blend_skinning(
     rotations = rodrigues(pose.reshape(batch, -1, 3))
     eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
     pose_feature = (rotations[:, 1:] - eye).reshape(batch, -1)
-    v_posed = v_expr + torch.einsum("bp,vcp->bvc", pose_feature, data.posedirs)
+    v_posed = v_expr + blend_shapes(pose_feature, data.posedirs)
     posed_joints, transforms = rigid_transforms(rotations, joints, data.parent_list)
-    per_vertex = torch.einsum("vj,bjik->bvik", data.lbs_weights, transforms)
-    vertices = torch.einsum("bvik,bvk->bvi", per_vertex[..., :3, :3], v_posed) + per_vertex[..., :3, 3]
+    n_joints = transforms.shape[1]  # per vertex: the skinning-weighted sum of the joints' 3x4 transforms
+    per_vertex = (data.lbs_weights @ transforms[..., :3, :].permute(1, 0, 2, 3).reshape(n_joints, -1)).reshape(
+        -1, batch, 3, 4).transpose(0, 1)  # (B, V, 3, 4)
+    vertices = (per_vertex[..., :3] @ v_posed[..., None]).squeeze(-1) + per_vertex[..., 3]
     return vertices, posed_joints
 
 

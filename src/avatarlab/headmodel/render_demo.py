@@ -7,19 +7,20 @@ from __future__ import annotations
 
 import logging
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from PIL import Image, ImageDraw
 
-from avatarlab.config import CONF_DIR, CPU, setup_run
+from avatarlab.config import CPU
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_png
 from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'render', 'demo')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def sweep_rows(columns: int) -> list[tuple[str, str, int, np.ndarray]]:
@@ -85,9 +86,8 @@ def render_sweep(cfg: DictConfig, device: torch.device = CPU) -> np.ndarray:
     return label_grid(images, rows, int(cfg.demo.columns))
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     grid = render_sweep(cfg, device)
     write_png(cfg.demo.out, grid)
     log.info("wrote %s (%dx%d)", cfg.demo.out, grid.shape[1], grid.shape[0])

@@ -51,7 +51,7 @@ class RandomConvFeatures(nn.Module):
     def __init__(self, seed: int = 0):
         super().__init__()
         g = torch.Generator().manual_seed(seed)
-        chans = [3, 16, 32, 64]
+        chans = [3, 8, 16, 32]
         self.convs = nn.ModuleList()
         for cin, cout in zip(chans[:-1], chans[1:]):
             conv = nn.Conv2d(cin, cout, 3, padding=1)
@@ -78,6 +78,11 @@ def perceptual_network(vgg_weights: str | None) -> nn.Module:
         return net
     log.warning("perceptual loss: no VGG16 weights given (model.vgg16_weights); using a fixed random-conv stand-in")
     return RandomConvFeatures()
+
+
+def composite(images: torch.Tensor, masks: torch.Tensor, background: float = 0.5) -> torch.Tensor:
+    """The head (mask) over a flat grey background: what the model is trained on and scored against."""
+    return images * masks + background * (1 - masks)
 
 
 def head_model_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, features: nn.Module,

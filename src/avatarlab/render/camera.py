@@ -38,6 +38,19 @@ class Camera:
     def to(self, device) -> "Camera":
         return replace(self, K=self.K.to(device), R=self.R.to(device), t=self.t.to(device))
 
+    def index(self, idx) -> "Camera":
+        """The cameras of batch entries `idx` (a slice, indices or a mask)."""
+        return replace(self, K=self.K[idx], R=self.R[idx], t=self.t[idx])
+
+    @staticmethod
+    def cat(cameras: list["Camera"]) -> "Camera":
+        """One batch of cameras of the same image size."""
+        cameras = [c for c in cameras if c is not None]
+        if len(cameras) == 1:
+            return cameras[0]
+        return Camera(K=torch.cat([c.K for c in cameras]), R=torch.cat([c.R for c in cameras]),
+                      t=torch.cat([c.t for c in cameras]), image_size=cameras[0].image_size)
+
 
 def intrinsics(focal: torch.Tensor | float, image_size: tuple[int, int], batch: int = 1,
                principal: tuple[float, float] | None = None) -> torch.Tensor:

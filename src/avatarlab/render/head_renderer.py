@@ -18,10 +18,11 @@ class HeadRenderer:
                                           uv_faces=albedo.uv_faces if albedo.is_uv else None)
 
     def __call__(self, params: dict[str, torch.Tensor], camera: Camera,
-                 lighting: torch.Tensor | None = None) -> RenderOutput:
-        """params: shape (B,S), expression (B,E), pose (B,15), texture (B,T); lighting (B,9,3) or the default."""
+                 lighting: torch.Tensor | None = None, geometry_images: bool = True) -> RenderOutput:
+        """params: shape (B,S), expression (B,E), pose (B,15), texture (B,T); lighting (B,9,3) or the default.
+        geometry_images=False: RGB, mask and landmarks only (no depth and normal images)."""
         out = self.model(params["shape"], params["expression"], params["pose"])
         if lighting is None:
             lighting = default_lighting(params["pose"].shape[0], device=params["pose"].device)
         return self.mesh_renderer(out.vertices, self.model.albedo(params["texture"]), camera, lighting,
-                                  out.landmarks3d)
+                                  out.landmarks3d, geometry_images)
