@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import compose_config, interp_config
+from helpers import compose_config, interp_config
 
 META = torch.device("meta")
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
@@ -35,11 +35,11 @@ def test_head_model_and_fit_loss_stay_on_the_device(head_model):
 
 
 def test_networks_stay_on_the_device():
-    from avatarlab.model.cnerf import CNeRFConfig
+    from avatarlab.model.cnerf import CNeRFConfig, camera_rays, ray_samples, sphere_interval, volume_render_features
     from avatarlab.preprocess.interp.network import XVFILite
     from avatarlab.render.camera import orbit_camera
     from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP
-    from avatarlab.train.pretrain import HeadNeRFModel
+    from avatarlab.model.head_nerf import HeadNeRFModel
 
     xvfi = XVFILite(8, 2).to(META)
     frames = torch.rand(2, 3, 16, 16, device=META)
@@ -57,10 +57,19 @@ def test_networks_stay_on_the_device():
 
     cfg = CNeRFConfig(frequencies=2, depth=3, width=16, skip_layer=1, feature_channels=4, samples=4, n_shape=3,
                       n_expression=2, n_texture=2)
-    net = HeadNeRFModel(cfg, "proposed", 8).to(META)
+    net = HeadNeRFModel(cfg, "proposed", 8, min_channels=4).to(META)
     camera = orbit_camera(torch.ones(2), 0.0, 0.0, image_size=(64, 64), batch=2, focal=60.0).to(META)
-    image = net(torch.rand(2, 3 + 12 + 2, device=META), torch.rand(2, 2 + 27, device=META), camera)
-    assert image.shape == (2, 3, 64, 64) and image.device == META
+    # the parts of a render (the ray packing's nonzero() has a data-dependent size, which the meta device lacks)
+    origins, dirs = camera_rays(camera, (8, 8))
+    near, far, _ = sphere_interval(origins, dirs, net.nerf.bound_center, net.nerf.bound_radius)
+    depths = ray_samples(near.reshape(-1), far.reshape(-1), 4, stratified=True)
+    assert depths.device == META
+    points = torch.rand(2 * 64 * 4, 3, device=META)
+    sigma, feat = net.nerf(points, torch.zeros(2 * 64 * 4, dtype=torch.long, device=META),
+                           torch.rand(2, 3 + 12 + 2, device=META), torch.rand(2, 2 + 27, device=META))
+    values, _ = volume_render_features(sigma.reshape(-1, 4), feat.reshape(-1, 4, 4), depths)
+    image = net.renderer(values.reshape(2, 8, 8, 4).permute(0, 3, 1, 2))
+    assert sigma.device == META and image.shape == (2, 3, 64, 64) and image.device == META
 
 
 def test_interpolation_trains_in_mixed_precision_like_float32(tmp_path):

@@ -11,13 +11,13 @@ import itertools
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from PIL import Image
 
-from avatarlab.config import CONF_DIR, CPU, setup_run
+from avatarlab.config import CPU
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.flame import clip_coefficients
 from avatarlab.headmodel.texture import default_lighting
@@ -26,6 +26,7 @@ from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'subject')  # the config sections this step reads (avatarlab/entry.py)
 HAIR_COLOURS = np.array([[0.08, 0.06, 0.05], [0.25, 0.15, 0.08], [0.45, 0.3, 0.15], [0.75, 0.6, 0.35],
                          [0.5, 0.5, 0.5], [0.55, 0.2, 0.08]])
 
@@ -44,7 +45,7 @@ def render_portraits(cfg: DictConfig, device: torch.device = CPU, chunk: int = 1
     70000 portraits at 512² never sit in memory at once). The head renders on `device`; every random draw comes
     from one CPU generator, so the images do not depend on the device."""
     model = load_head_model(cfg.head_model)
-    count, size = int(cfg.scale.portraits), int(cfg.scale.video_size)
+    count, size = int(cfg.subject.portraits), int(cfg.subject.video_size)
     g = torch.Generator().manual_seed(int(cfg.seed) + 7)
     params = model.zeros(count)
     for name, std in (("shape", 1.0), ("expression", 0.7), ("texture", 1.0)):
@@ -82,9 +83,8 @@ def render_portraits(cfg: DictConfig, device: torch.device = CPU, chunk: int = 1
     return params, images(), model.source
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     params, chunks, source = render_portraits(cfg, device)
     out_dir = Path(cfg.subject.images_out)
     out_dir.mkdir(parents=True, exist_ok=True)

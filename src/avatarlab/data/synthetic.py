@@ -17,10 +17,12 @@ from avatarlab.render.head_renderer import HeadRenderer
 
 class SyntheticGenerator:
     def __init__(self, model, real_params: dict[str, torch.Tensor], cfg, image_size: int, background,
-                 device: torch.device | None = None):
+                 device: torch.device | None = None, fixed_identity: bool = False):
         """real_params: shape (R,S), expression (R,E), texture (R,T), lighting (R,9,3) of the real image set.
         The samples are drawn on the CPU (one generator: the same samples on every device) and rendered on
-        `device` (default: where the model is), where the returned tensors are."""
+        `device` (default: where the model is), where the returned tensors are. `fixed_identity` (fine-tuning):
+        no noise on the real image's shape and texture - the subject's own identity."""
+        self.fixed_identity = fixed_identity
         self.device = device if device is not None else model.faces.device
         self.model = model.to(self.device)
         self.real = real_params
@@ -36,7 +38,7 @@ class SyntheticGenerator:
         c = self.cfg
         pick = torch.randint(0, self.real["shape"].shape[0], (n,), generator=g)
         noise = lambda t: t + (torch.rand(t.shape, generator=g) * 2 - 1) * float(c.coefficient_noise)  # noqa: E731
-        keep = (lambda t: t) if c.get("fixed_identity") else noise  # fine-tuning: the subject's own shape/texture
+        keep = (lambda t: t) if self.fixed_identity else noise  # fine-tuning: the subject's own shape/texture
         params = {"shape": clip_coefficients(keep(self.real["shape"][pick])),
                   "expression": clip_coefficients(noise(self.real["expression"][pick])),
                   "texture": clip_coefficients(keep(self.real["texture"][pick])),
@@ -52,5 +54,5 @@ class SyntheticGenerator:
                               focal=float(c.focal_over_size) * self.size)
         lighting = self.real["lighting"][pick].to(self.device)
         params, camera = {k: v.to(self.device) for k, v in params.items()}, camera.to(self.device)
-        out = self.renderer(params, camera, lighting)
+        out = self.renderer(params, camera, lighting, geometry_images=False)
         return {"images": out.rgb, "masks": out.mask, "params": params, "lighting": lighting, "camera": camera}

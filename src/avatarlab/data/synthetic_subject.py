@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import logging
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, CPU, setup_run
+from avatarlab.config import CPU
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import atomic_path, write_video
@@ -23,6 +23,7 @@ from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'render', 'subject')  # the config sections this step reads (avatarlab/entry.py)
 PRESETS = ("talking", "head_turns")
 
 
@@ -81,7 +82,7 @@ def render_subject(cfg: DictConfig, device: torch.device = CPU) -> dict:
     sub = cfg.subject
     model = load_head_model(cfg.head_model)
     rng = np.random.default_rng(int(sub.seed))
-    frames, fps, size = int(cfg.scale.subject_frames), float(sub.fps), int(cfg.scale.video_size)
+    frames, fps, size = int(sub.frames), float(sub.fps), int(sub.video_size)
     expr, pose = motion(sub.preset, frames, fps, model.n_expression, rng)
     blink = eyelid_component(model)
     expr[:, blink] += 2.0 * np.sign(_eyelid_response(model)[blink]) * blink_weights(frames, fps, rng)
@@ -117,15 +118,14 @@ def render_subject(cfg: DictConfig, device: torch.device = CPU) -> dict:
     }
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     result = render_subject(cfg, device)
     write_video(cfg.subject.video_out, result.pop("video"), result["fps"])
     with atomic_path(cfg.subject.truth_out) as tmp:
         np.savez_compressed(tmp, **result)
     log.info("synthetic subject %s (%s): %d frames at %dx%d, %.0f fps -> %s", cfg.subject.name, cfg.subject.preset,
-             len(result["pose"]), cfg.scale.video_size, cfg.scale.video_size, result["fps"], cfg.subject.video_out)
+             len(result["pose"]), cfg.subject.video_size, cfg.subject.video_size, result["fps"], cfg.subject.video_out)
 
 
 if __name__ == "__main__":

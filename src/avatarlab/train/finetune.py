@@ -1,152 +1,124 @@
 """Per-subject avatar: a pretrained head model fine-tuned on one subject's video (seed 002, section 4.1).
 
-The subject's fitted shape and texture stay fixed (no offsets), the first four CNeRF MLP layers are frozen, real frames
-get z-distance augmentation and the share of synthetic samples (the head model with the subject's identity) decays
-linearly to zero. The last `finetune.test_frames` frames are never trained on (INSTA protocol); the avatar is
-evaluated there - PSNR, SSIM, LPIPS (or missing), identity similarity - on all test frames and on the mouth-open
-subset (the test frames with the widest fitted jaw opening). Writes `model.pt`, `metrics.json`, `test_frames.png`.
-`python -m avatarlab.train.finetune subject.name=synth_talk finetune.init_model=.../beta6_from_alpha2/model.pt`
+The recipe is the `finetune` config group: `base` (the ablation fine-tunes of sections 4.2-4.3: real frames only)
+or `final` (the final recipe: + z-augmentation and a synthetic share decaying linearly to 0). Both keep the
+subject's fitted shape and texture fixed (no offsets) and the first CNeRF MLP layers frozen. The test frames
+(data/splits.py) are never trained on; scoring them is the evaluation step's job (evaluate/avatar.py).
+Writes `model.pt` and `train.json`.
+`python -m avatarlab.train.finetune finetune=final finetune.subject_dir=... finetune.init_model=.../model.pt`
 """
 from __future__ import annotations
 
 import logging
-import time
+import shutil
 from pathlib import Path
 
-import hydra
-import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-from avatarlab.config import CONF_DIR, setup_run
-from avatarlab.data.subject_files import load_frame_stack
-from avatarlab.evaluate.metrics import identity_similarity, lpips_metric, psnr, ssim
-from avatarlab.io import atomic_path, write_json, write_png
-from avatarlab.render.camera import Camera
-from avatarlab.tracking import start_run
-from avatarlab.train.pretrain import RealImageSet, codes, composite, render_in_chunks, train
+from avatarlab.data.batches import BatchSource
+from avatarlab.data.real_images import RealImageSet
+from avatarlab.data.schedule import Schedule
+from avatarlab.data.splits import avatar_split
+from avatarlab.data.synthetic import SyntheticGenerator
+from avatarlab.entry import entry_point, step_settings
+from avatarlab.headmodel import load_head_model
+from avatarlab.io import atomic_path, write_json
+from avatarlab.model.head_nerf import load_model_file, model_file
+from avatarlab.model.losses import perceptual_network
+from avatarlab.provenance import code_digest, fingerprint
+from avatarlab.tracking import log_history, start_run
+from avatarlab.train.checkpoint import Checkpoint
+from avatarlab.train.loop import Recipe, train
 
 log = logging.getLogger(__name__)
+READS = ("seed", "amp", "head_model", "render", "model", "synthetic", "finetune", "tracking")
 
 
-def split(n_frames: int, fitted: np.ndarray, test_frames: int, variant: str = "a", interpolated=()):
-    """Train on the fitted frames before the last `test_frames`; test on the fitted frames among the last ones.
-
-    Interpolation experiment (seed 002, 4.3): variant b keeps every second training frame (the even ones, as the
-    interpolation step's split does); c adds back the dropped ones that `interpolated` re-creates."""
-    if variant not in ("a", "b", "c"):
-        raise ValueError(f"finetune.frames_variant={variant!r}: expected a, b or c")
-    test_frames = min(test_frames, n_frames // 2)
-    idx = np.arange(n_frames)
-    in_train = idx < n_frames - test_frames
-    test_idx = idx[~in_train & fitted]
-    if variant == "a":
-        return idx[in_train & fitted], test_idx
-    kept = in_train & fitted & (idx % 2 == 0)
-    if variant == "c":
-        made = np.zeros(n_frames, bool)
-        made[np.asarray(list(interpolated), dtype=int)] = True
-        kept |= in_train & made
-    return idx[kept], test_idx
+def recipe_of(cfg, start: int) -> Recipe:
+    ft, m = cfg.finetune, cfg.model
+    schedule = Schedule(M=start, N=start + int(ft.iterations), p_min=0.0, p_max=float(ft.p_max), mouth_from=None)
+    count = int(ft.snapshots)  # evenly spaced, the last one being the final model
+    snapshots = tuple(sorted({start + round(int(ft.iterations) * k / count) for k in range(1, count)})) if count > 1 \
+        else ()
+    return Recipe(schedule=schedule, start=start, batch=int(ft.batch), lr=float(ft.lr), offset_lr=float(ft.offset_lr),
+                  renderer_lr=float(ft.renderer_lr),
+                  z_aug=bool(ft.z_aug), z_aug_range=tuple(ft.z_aug_range), fixed_codes=tuple(ft.fixed_codes),
+                  freeze_layers=int(ft.freeze_layers), w_mse=float(m.w_mse), w_perceptual=float(m.w_perceptual),
+                  w_mask=float(m.w_mask),
+                  offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
+                  log_every=int(ft.log_every), amp=bool(cfg.amp), snapshots=snapshots)
 
 
-def finetune_config(cfg: DictConfig, train_idx: np.ndarray) -> DictConfig:
+def finetune_avatar(cfg, device):
+    """One fine-tuning run from a step config (the READS sections): trains, writes model.pt, snapshots and
+    train.json, deletes its checkpoint. -> (net, TrainResult, the train.json contents)."""
     ft = cfg.finetune
-    return OmegaConf.merge(cfg, {
-        "strategy": {"z_aug": True},
-        "synthetic": {"fixed_identity": True},
-        "pretrain": {"real_subject_dir": ft.subject_dir, "real_indices": train_idx.tolist(),
-                     "init_model": ft.init_model, "out_dir": ft.out_dir, "fixed_codes": ["shape", "texture"],
-                     "freeze_layers": 4, "finetune_iterations": int(cfg.scale.finetune_iterations),
-                     "iterations": None}})
+    out_dir = Path(ft.out_dir)
+    split = avatar_split(ft)
+    net, parent = load_model_file(ft.init_model, device)
+    size = int(parent["spec"]["feature_size"]) * 8
+    real = RealImageSet(ft.subject_dir, size, split.train, ft.interpolated if ft.frames_variant == "c" else None)
+    recipe = recipe_of(cfg, int(parent["step"]))
+    synthetic = None
+    if recipe.schedule.p_max > 0:
+        synthetic = SyntheticGenerator(load_head_model(cfg.head_model), real.params, cfg.synthetic, size,
+                                       tuple(cfg.render.background), device, fixed_identity=True)
+    source = BatchSource(synthetic=synthetic, real=real, schedule=recipe.schedule, batch_size=recipe.batch,
+                         device=device, z_aug=recipe.z_aug, z_aug_range=recipe.z_aug_range)
+    settings = step_settings(cfg, tuple(k for k in READS if k != "tracking"))
+    subject = Path(ft.subject_dir)
+    data = {"fit": subject / "fit_rgb.npz", "masks": subject / "masks.npz", "frames": subject / "frames.json",
+            "parent": ft.init_model, "interpolated": ft.interpolated if ft.frames_variant == "c" else None}
+    checkpoint = Checkpoint(out_dir / "checkpoint.pt", fingerprint(settings, code_digest(__spec__.name), data))
+    resume = checkpoint.load()
+    if resume is None:  # a fresh run: no snapshot of an earlier run may join this one's curve
+        shutil.rmtree(out_dir / "snapshots", ignore_errors=True)
+    run_name = f"{ft.subject}/{ft.init_name}" + ("" if ft.frames_variant == "a" else f"/frames_{ft.frames_variant}")
+    tags = {"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "renderer": parent["spec"]["renderer"],
+            "frames_variant": ft.frames_variant}
+    with start_run(cfg, "finetune", run_name, tags, run_id=(resume or {}).get("run_id"), output=out_dir) as run:
+        run_id = run.info.run_id if run is not None else None
+        if run is not None and resume is None:
+            import mlflow
 
+            mlflow.log_params({"init": ft.init_name, "recipe": ft.name, "subject": ft.subject,
+                               "frames_variant": ft.frames_variant, "train_frames": len(split.train),
+                               "test_frames": len(split.test), "split": split.protocol, "iterations": ft.iterations,
+                               "lr": recipe.lr, "z_aug": recipe.z_aug, "p_max": recipe.schedule.p_max,
+                               "image_size": size})
+        config = OmegaConf.to_container(cfg, resolve=True)
 
-@torch.no_grad()
-def evaluate_avatar(net, test: RealImageSet, mouth_open: int, lpips) -> tuple[dict, torch.Tensor, torch.Tensor]:
-    net.eval()
-    camera = Camera(K=test.K, R=test.R, t=test.t, image_size=(test.size, test.size))
-    start = time.perf_counter()
-    preds = render_in_chunks(net, *codes(test.params, test.params["lighting"]), camera)
-    seconds_per_frame = (time.perf_counter() - start) / len(test)
-    pred = composite(preds, test.masks)
-    target = composite(test.images, test.masks)
-    jaw = test.params["pose"][:, 6]
-    subset = torch.argsort(jaw, descending=True)[: max(1, min(mouth_open, len(test)))]
+        def snapshot(step: int, seconds: float) -> None:  # weights part-way, for the quality-vs-time curve
+            with atomic_path(out_dir / "snapshots" / f"step_{step:07d}.pt") as tmp:
+                torch.save(model_file(net, step, config, seconds=seconds, run_id=run_id, stage="finetune"), tmp)
 
-    def scores(sel) -> dict:
-        out = {"frames": int(len(sel)), "psnr": psnr(pred[sel], target[sel]), "ssim": ssim(pred[sel], target[sel]),
-               "lpips": lpips(pred[sel], target[sel]) if lpips is not None else None}
-        ids = [identity_similarity(_u8(pred[i]), _u8(target[i])) for i in sel.tolist()]
-        found = [v for v in ids if v is not None]
-        out["identity_similarity"] = float(np.mean(found)) if found else None
-        out["identity_faces_found"] = len(found)
-        return out
-
-    return {"all": scores(torch.arange(len(test))), "mouth_open": scores(subset),
-            "render_seconds_per_frame": seconds_per_frame}, pred, target
-
-
-def _u8(image: torch.Tensor) -> np.ndarray:
-    return (image.permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
-    ft = cfg.finetune
-    subject_dir = Path(ft.subject_dir)
-    _, meta = load_frame_stack(subject_dir)
-    with np.load(subject_dir / "fit_rgb.npz") as fit:
-        fitted = fit["fitted"]
-    variant, made = str(ft.frames_variant), []
-    if variant == "c":
-        if not Path(ft.interpolated).is_file():
-            raise FileNotFoundError(f"{ft.interpolated}: variant c needs the interpolation step's frames")
-        with np.load(ft.interpolated) as f:
-            made = f["indices"].tolist()
-    train_idx, test_idx = split(meta["count"], fitted, int(ft.test_frames), variant, made)
-    if len(test_idx) == 0 or len(train_idx) == 0:
-        raise ValueError(f"{subject_dir}: {meta['count']} frames leave no train/test split")
-    run_cfg = finetune_config(cfg, train_idx)
-    if variant == "c":
-        run_cfg.pretrain.real_interpolated = str(ft.interpolated)
-    tags = {"subject": cfg.subject.name, "init": ft.init_name, "renderer": cfg.pretrain.renderer,
-            "frames_variant": variant}
-    run_name = f"{cfg.subject.name}/{ft.init_name}" + ("" if variant == "a" else f"/frames_{variant}")
-    with start_run(cfg, "finetune", run_name, tags, bool(cfg.tracking.enabled)) as mlf:
-        result = train(run_cfg)
-        test = RealImageSet(subject_dir, int(cfg.scale.pretrain_image_size), test_idx.tolist())
-        metrics, pred, target = evaluate_avatar(result["net"], test, int(ft.mouth_open_frames),
-                                                lpips_metric(ft.lpips_backbone, device))
-        out_dir = Path(ft.out_dir)
+        result = train(net, source, recipe, perceptual_network(cfg.model.vgg16_weights).to(device), device,
+                       checkpoint, int(cfg.seed), resume, extra={"run_id": run_id},
+                       on_progress=lambda entries: log_history(run, entries), on_snapshot=snapshot)
         with atomic_path(out_dir / "model.pt") as tmp:
-            torch.save({"model": result["net"].state_dict(), "step": result["step"],
-                        "config": OmegaConf.to_container(run_cfg, resolve=True)}, tmp)
-        grid = torch.cat([torch.cat(list(target[:6]), 2), torch.cat(list(pred[:6]), 2)], 1)
-        write_png(out_dir / "test_frames.png", _u8(grid))
-        new = [h for h in result["history"] if h["step"] > result["start_step"]]
-        report = {"subject": cfg.subject.name, "init": ft.init_name, "frames_variant": variant,
-                  "train_frames": len(train_idx), "train_indices": train_idx.tolist(),
-                  "test_frames": test_idx.tolist(), "iterations": len(new), "train_seconds": result["seconds"],
-                  "test": metrics, "lpips_backbone": ft.lpips_backbone, "history": new}
-        write_json(out_dir / "metrics.json", report)
-        if mlf is not None:
-            mlf.log_params({"init": ft.init_name, "subject": cfg.subject.name, "frames_variant": variant,
-                            "train_frames": len(train_idx), "test_frames": len(test_idx), "iterations": len(new),
-                            "image_size": cfg.scale.pretrain_image_size, "lpips_backbone": ft.lpips_backbone})
-            for h in new:
-                mlf.log_metrics({k: h[k] for k in ("loss", "psnr", "p_synthetic")}, step=h["step"])
-            for part in ("all", "mouth_open"):
-                mlf.log_metrics({f"test_{part}_{k}": v for k, v in metrics[part].items()
-                                 if isinstance(v, float)})
-            mlf.log_metrics({"train_seconds": result["seconds"],
-                             "render_seconds_per_frame": metrics["render_seconds_per_frame"]})
-            mlf.log_artifact(str(out_dir / "test_frames.png"))
-    a = metrics["all"]
-    log.info("avatar %s from %s: %d train / %d test frames, %d its in %.0fs; test PSNR %.2f SSIM %.4f LPIPS %s "
-             "identity %s", cfg.subject.name, ft.init_name, len(train_idx), len(test_idx), len(new), result["seconds"],
-             a["psnr"], a["ssim"], "missing" if a["lpips"] is None else f"{a['lpips']:.4f}",
-             a["identity_similarity"])
+            torch.save(model_file(net, result.step, config, name=run_name, run_id=run_id, stage="finetune",
+                                  seconds=result.seconds), tmp)
+        report = {"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "frames_variant": ft.frames_variant,
+                  "split": split.protocol, "train_frames": len(split.train), "train_indices": split.train.tolist(),
+                  "test_indices": split.test.tolist(), "iterations": result.step - recipe.start,
+                  "train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
+                  "history": result.history, "run_id": run_id}
+        write_json(out_dir / "train.json", report)
+        if run is not None:
+            import mlflow
+
+            mlflow.log_metrics({"train_seconds": result.seconds, "samples_per_second": result.samples_per_second})
+    checkpoint.remove()
+    return net, result, report
+
+
+@entry_point(READS)
+def main(cfg, device) -> None:
+    _, result, report = finetune_avatar(cfg, device)
+    log.info("avatar %s from %s (%s recipe): %d train / %d test frames, %d iterations in %.0f s", report["subject"],
+             report["init"], report["recipe"], report["train_frames"], len(report["test_indices"]),
+             report["iterations"], result.seconds)
 
 
 if __name__ == "__main__":
