@@ -1,18 +1,47 @@
+import json
+
 import numpy as np
 import pytest
 import torch
 
-from avatarlab.evaluate.metrics import LPIPS, identity_similarity, load_backbone, lpips_metric, psnr, ssim
-from avatarlab.train.finetune import split
+from avatarlab.data.splits import mouth_open_subset, subject_split
+from avatarlab.entry import InputError
+from avatarlab.evaluate import baselines
+from avatarlab.evaluate.metrics import (LPIPS, STLPIPS, face_metrics, identity_similarity, load_backbone,
+                                        lpips_metric, psnr, ssim)
+from avatarlab.evaluate.scoring import gains
+from avatarlab.safe_load import InputFileError
+from helpers import fake_real_set, fake_video_subject, step_cfg
+from helpers.subjects import tiny_model_overrides
 
 
 def test_split_keeps_the_last_frames_for_testing():
     fitted = np.ones(20, bool)
     fitted[3] = fitted[18] = False
-    train, test = split(20, fitted, 5)
-    assert list(test) == [15, 16, 17, 19] and 3 not in train and max(train) == 14
-    train, test = split(6, np.ones(6, bool), 350)  # never more than half the video
-    assert list(test) == [3, 4, 5] and list(train) == [0, 1, 2]
+    split = subject_split(fitted, np.zeros(20, int), 5)
+    assert list(split.test) == [15, 16, 17, 19] and 3 not in split.train and max(split.train) == 14
+    assert split.protocol == "last_frames"
+    b = subject_split(np.ones(20, bool), np.zeros(20, int), 5, variant="b")
+    assert list(b.train) == list(range(0, 15, 2))
+    c = subject_split(np.ones(20, bool), np.zeros(20, int), 5, variant="c", interpolated=[1, 3, 5])
+    assert list(c.train) == sorted(list(range(0, 15, 2)) + [1, 3, 5])
+
+
+def test_split_can_hold_out_whole_clips():
+    clips = np.repeat([0, 1, 2], 4)
+    split = subject_split(np.ones(12, bool), clips, test_frames=3, test_clips=1)
+    assert list(split.test) == [8, 9, 10, 11] and list(split.train) == list(range(8))
+    assert split.protocol == "held_out_clips"
+    with pytest.raises(InputError, match="1 clip"):
+        subject_split(np.ones(4, bool), np.zeros(4, int), 1, test_clips=1, source="frames.json")
+
+
+def test_too_few_frames_for_the_split_stop_with_the_file_named():
+    with pytest.raises(InputError, match="subject/frames.json: 2 frames are too few for 3 test frames"):
+        subject_split(np.ones(2, bool), np.zeros(2, int), 3, source="subject/frames.json")
+    with pytest.raises(InputError, match="no fitted frame left for the test split"):
+        subject_split(np.array([1, 1, 1, 0, 0, 0], bool), np.zeros(6, int), 3)
+    assert list(mouth_open_subset(np.array([0.1, 0.3, 0.0, 0.2]), 2)) == [1, 3]
 
 
 def test_psnr_ssim_values():
@@ -41,7 +70,7 @@ def test_lpips_is_missing_without_backbone_and_matches_the_package_with_it(tmp_p
     other = lpips.LPIPS(net="vgg", pretrained=True, pnet_rand=True, verbose=False).eval()
     with torch.no_grad():
         assert float(other(x * 2 - 1, y * 2 - 1).mean()) != pytest.approx(expected, rel=1e-3)
-    with pytest.raises(FileNotFoundError, match="missing.pth"):
+    with pytest.raises(InputFileError, match="missing.pth: no such file"):
         LPIPS(tmp_path / "missing.pth")
 
 
@@ -64,34 +93,126 @@ def test_identity_similarity_on_renders(head_model):
     assert identity_similarity(np.zeros((64, 64, 3), np.uint8), images[0]) is None
 
 
-@pytest.mark.slow
-def test_finetuning_freezes_four_layers_and_keeps_identity_fixed(tmp_path):
-    from conftest import compose_config
-    from test_pretrain import fake_real_set
 
+def test_st_lpips_ranks_real_photographs_and_tolerates_a_pixel_shift():
+    """ST-LPIPS (weights shipped in the stlpips-pytorch wheel) on scikit-image's photographs: identical = 0 < a mild
+    blur < an unrelated image, and a one-pixel shift scores lower than a blur of higher PSNR."""
+    import kornia
+    from skimage import data
+
+    def photo(image):
+        t = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+        return torch.nn.functional.interpolate(t, size=(128, 128), mode="area")
+
+    metric = STLPIPS()
+    img, other = photo(data.astronaut()), photo(data.chelsea())
+    blur = kornia.filters.gaussian_blur2d(img, (5, 5), (1.0, 1.0))
+    shift = torch.roll(img, 1, dims=3)
+    same, mild, unrelated, shifted = (metric(x, img) for x in (img, blur, other, shift))
+    assert same == pytest.approx(0.0, abs=1e-6) and 0 < mild < unrelated
+    assert psnr(shift, img) < psnr(blur, img) - 3, "the shift is the larger change by PSNR"
+    assert shifted < mild, "and the smaller one to a shift-tolerant perceptual metric"
+    assert "ST-LPIPS" in metric.name and "LPIPS (VGG" not in metric.name
+
+
+def test_face_metrics_on_renders_of_the_head_model(head_model):
+    from avatarlab.render import orbit_camera
+    from avatarlab.render.head_renderer import HeadRenderer
+
+    with torch.no_grad():
+        out = HeadRenderer(head_model)(head_model.zeros(2), orbit_camera(1.0, 0.0, 0.0, image_size=(256, 256),
+                                                                        batch=2))
+    faces = (out.rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
+    blank = np.full_like(faces, 128)
+    found = face_metrics(faces, faces)
+    assert found["face_detection_rate"] == 1.0 and found["landmark_nme"] == pytest.approx(0.0, abs=1e-9)
+    assert found["identity_similarity"] == pytest.approx(1.0, abs=1e-6)
+    none = face_metrics(blank, faces)
+    assert none["face_detection_rate"] == 0.0 and none["landmark_nme"] is None and none["identity_similarity"] is None
+
+
+def test_baselines_predict_from_training_frames_only():
+    train = torch.zeros(3, 3, 8, 8)
+    train[:, 0] = torch.tensor([0.2, 0.4, 0.6])[:, None, None]
+    masks = torch.ones(3, 1, 8, 8)
+    test_masks = torch.zeros(2, 1, 8, 8)
+    test_masks[:, :, 2:6, 2:6] = 1
+    colour = baselines.mean_colour(train, masks, test_masks)
+    assert colour[0, 0, 3, 3] == pytest.approx(0.4) and colour[0, 0, 0, 0] == pytest.approx(0.5)  # grey outside
+    last = baselines.frames_at(train, masks, [2, 2], test_masks)
+    assert last[1, 0, 3, 3] == pytest.approx(0.6)
+    pool = {"jaw": torch.tensor([[0.0], [0.1], [0.3]]), "camera": torch.zeros(3, 2)}
+    query = {"jaw": torch.tensor([[0.28], [0.02]]), "camera": torch.zeros(2, 2)}
+    assert list(baselines.nearest_indices(pool, query)) == [2, 0]
+
+
+def test_gain_over_the_best_baseline_respects_each_metrics_direction():
+    model = {"psnr": 25.0, "st_lpips": 0.20, "ssim": 0.80}
+    base = {"last": {"psnr": 26.0, "st_lpips": 0.30, "ssim": 0.85}, "mean": {"psnr": 20.0, "st_lpips": 0.10,
+                                                                              "ssim": 0.70}}
+    g = gains(model, base)
+    assert g["psnr"] == {"best_baseline": "last", "baseline": 26.0, "gain": -1.0, "beats": False}
+    assert g["st_lpips"]["best_baseline"] == "mean" and g["st_lpips"]["gain"] == pytest.approx(-0.1)
+    assert not g["ssim"]["beats"]
+
+
+@pytest.fixture(scope="module")
+def parent_model(tmp_path_factory):
+    """A tiny pretrained model (alpha1 at smoke scale, a very small network)."""
     from avatarlab.train import pretrain
-    from avatarlab.train.finetune import finetune_config
 
-    fake_real_set(tmp_path / "portraits")
-    base = ["scale=smoke", "tracking.enabled=false", "model.depth=5"]
-    parent = pretrain.train(compose_config(base + [f"pretrain.real_subject_dir={tmp_path / 'portraits'}",
-                                                   f"pretrain.out_dir={tmp_path / 'alpha1'}"]))
-    torch.save({"model": parent["net"].state_dict(), "step": parent["step"]}, tmp_path / "alpha1.pt")
-    # a subject as fit_rgb writes it in video mode: shape, texture and lighting shared by all frames
-    subject = tmp_path / "subject"
-    fake_real_set(subject, count=6)
-    with np.load(subject / "fit_rgb.npz") as f:
-        fit = dict(f)
-    fit.update(shape=fit["shape"][0], texture=fit["texture"][0], lighting=fit["lighting"][0])
-    np.savez(subject / "fit_rgb.npz", **fit)
-    cfg = compose_config(base + [f"finetune.subject_dir={subject}", f"finetune.init_model={tmp_path / 'alpha1.pt'}",
-                                 f"finetune.out_dir={tmp_path / 'avatar'}"])
-    result = pretrain.train(finetune_config(cfg, np.arange(4)))
-    assert result["start_step"] == parent["step"] and len(result["real"]) == 4
-    assert set(result["offsets"].keys()) == {"pose", "expression", "lighting"}, "shape and texture stay fixed"
-    p_syn = [h["p_synthetic"] for h in result["history"] if h["step"] > result["start_step"]]
+    folder = tmp_path_factory.mktemp("parent")
+    fake_real_set(folder / "portraits")
+    cfg = step_cfg(pretrain, tiny_model_overrides() + ["model.depth=5", f"pretrain.out_dir={folder / 'alpha1'}",
+                                                       f"pretrain.real_subject_dir={folder / 'portraits'}"])
+    net, result, _ = pretrain.pretrain_model(cfg, torch.device("cpu"))
+    return folder / "alpha1" / "model.pt", net
+
+
+@pytest.mark.slow
+def test_finetuning_freezes_four_layers_and_keeps_identity_fixed(tmp_path, parent_model):
+    from avatarlab.train import finetune
+
+    path, parent = parent_model
+    subject = fake_video_subject(tmp_path / "subject", count=8)
+    cfg = step_cfg(finetune, tiny_model_overrides() + [
+        "finetune=final", f"finetune.subject_dir={subject}", f"finetune.init_model={path}", "finetune.test_frames=2",
+        f"finetune.out_dir={tmp_path / 'avatar'}", "finetune.iterations=4", "finetune.snapshots=2"])
+    net, result, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
+    assert report["train_indices"] == list(range(6)) and report["test_indices"] == [6, 7]
+    assert set(result.offsets.keys()) == {"pose", "expression", "lighting"}, "shape and texture stay fixed"
+    p_syn = [h["p_synthetic"] for h in result.history]
     assert p_syn[0] > p_syn[-1] and p_syn[-1] == pytest.approx(0.0), "synthetic share decays linearly to 0"
-    before, after = parent["net"].nerf, result["net"].nerf
     for k in range(5):
-        same = torch.equal(before.layers[k].weight, after.layers[k].weight)
+        same = torch.equal(parent.nerf.layers[k].weight, net.nerf.layers[k].weight)
         assert same == (k < 4), f"MLP layer {k} should be {'frozen' if k < 4 else 'trained'}"
+    assert [p.name for p in sorted((tmp_path / "avatar" / "snapshots").glob("*.pt"))] == [
+        f"step_{result.start + 2:07d}.pt"]
+    base = step_cfg(finetune, tiny_model_overrides() + ["finetune=base"]).finetune
+    assert (base.z_aug, base.p_max) == (False, 0.0), "ablation fine-tunes: no z-augmentation, no synthetic share"
+
+
+@pytest.mark.slow
+def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model):
+    from avatarlab.evaluate import avatar as evaluation
+    from avatarlab.train import finetune
+
+    path, _ = parent_model
+    subject = fake_video_subject(tmp_path / "subject", count=8)
+    common = tiny_model_overrides() + [f"finetune.subject_dir={subject}", "finetune.test_frames=2",
+                                       f"finetune.out_dir={tmp_path / 'avatar'}"]
+    finetune.finetune_avatar(step_cfg(finetune, common + [f"finetune.init_model={path}", "finetune.iterations=4"]),
+                             torch.device("cpu"))
+    cfg = step_cfg(evaluation, common + [f"evaluate.model={tmp_path / 'avatar' / 'model.pt'}",
+                                         f"evaluate.out={tmp_path / 'avatar' / 'eval.json'}"])
+    report, grid = evaluation.evaluate_avatar(cfg, torch.device("cpu"))
+    json.dumps(report)  # plain values only
+    part = report["all"]
+    assert part["frames"] == 2 and set(part["baselines"]) == {"mean_frame", "last_frame", "nearest"}
+    for scores in [part["model"], *part["baselines"].values()]:
+        assert {"psnr", "psnr_head", "ssim", "st_lpips", "face_detection_rate"} <= set(scores)
+        assert scores["lpips"] is None, "no VGG backbone given: LPIPS is missing, not made up"
+    assert part["gain"]["psnr"]["baseline"] == max(b["psnr"] for b in part["baselines"].values())
+    assert part["gain"]["psnr"]["gain"] == pytest.approx(part["model"]["psnr"] - part["gain"]["psnr"]["baseline"])
+    assert [pt["step"] for pt in report["curve"]] == [7, 8, 9, 10] and report["step"] == 10  # 4 snapshots by default
+    assert grid.shape[1] == 3 * 64, "rows: truth, model, best baseline"

@@ -1,12 +1,17 @@
-"""Image metrics of the avatars: PSNR, SSIM (kornia), LPIPS (the lpips package) and identity similarity (dlib).
+"""Image metrics: PSNR, SSIM (kornia), ST-LPIPS and LPIPS (learned perceptual distances), and face metrics (dlib).
 
-LPIPS needs the ImageNet backbone: its VGG16 weights are given by path (a torchvision state dict); the lpips package
-supplies its own linear calibration layers. Without the backbone, LPIPS is reported as missing (None), never made up.
-Identity similarity is the cosine of dlib's face-recognition descriptors (face_recognition_models), a learned metric
-that runs here without downloads.
+- ST-LPIPS (Ghildyal & Liu, ECCV 2022, "Shift-tolerant perceptual similarity"; AlexNet backbone + linear layers,
+  BSD-2) ships its trained weights inside the stlpips-pytorch wheel, so it works out of the box. Reported as
+  `st_lpips`, never as LPIPS.
+- LPIPS (Zhang et al. 2018, VGG) needs the ImageNet VGG16 backbone given by path (a torchvision state dict); without
+  it LPIPS is reported missing (None), never made up.
+- Face metrics: dlib's HOG detector finds the face (detection rate), its 68 landmarks give the NME against the ground
+  truth's landmarks (normalised by the outer-eye distance, points 36 and 45), and dlib's face-recognition network
+  the identity similarity (cosine of the 128-d descriptors). All run here without downloads.
 """
 from __future__ import annotations
 
+import importlib.util
 import logging
 from functools import lru_cache
 from pathlib import Path
@@ -16,12 +21,13 @@ import numpy as np
 import torch
 
 from avatarlab.config import CPU
+from avatarlab.safe_load import load_tensors
 
 log = logging.getLogger(__name__)
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
-    return float(kornia.metrics.psnr(pred.clamp(0, 1), target, 1.0))
+def psnr(pred: torch.Tensor, target: torch.Tensor, max_value: float = 1.0) -> float:
+    return float(kornia.metrics.psnr(pred.clamp(0, 1), target, max_value))
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:
@@ -29,28 +35,67 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:
     return float(kornia.metrics.ssim(pred.clamp(0, 1), target, window).mean())
 
 
+def psnr_in_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
+    """PSNR over the head region only (mask > 0), MAX = 1."""
+    mse = (((pred - target) ** 2) * mask).sum() / (pred.shape[1] * mask.sum()).clamp(min=1)
+    return float(-10 * torch.log10(mse.clamp(min=1e-12)))
+
+
+class STLPIPS:
+    """Shift-tolerant LPIPS, AlexNet variant, with the weights of the stlpips-pytorch wheel (read with
+    weights_only=True and checked to cover every layer). Lower is more similar; inputs in [0, 1]."""
+
+    name = "ST-LPIPS (AlexNet, shift-tolerant; Ghildyal & Liu 2022)"
+
+    def __init__(self, device: torch.device = CPU):
+        from stlpips_pytorch import stlpips
+
+        root = Path(list(importlib.util.find_spec("stlpips_pytorch").submodule_search_locations)[0])
+        weights = root / "weights" / "vST0.0" / "alex_shift_tolerant.pth"
+        self.model = stlpips.LPIPS(net="alex", variant="shift_tolerant", pretrained=False, verbose=False)
+        result = self.model.load_state_dict(load_tensors(weights, "ST-LPIPS weights"), strict=False)
+        # `lins.k` are the same modules as `link` (two names in the state dict, one in the file)
+        missing = [k for k in result.missing_keys if not k.startswith("lins.")]
+        if missing or result.unexpected_keys:
+            raise RuntimeError(f"{weights}: does not fit the ST-LPIPS network ({missing or result.unexpected_keys})")
+        self.model.eval().to(device)
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+        self.device = device
+
+    @torch.no_grad()
+    def per_image(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        pred, target = pred.to(self.device).clamp(0, 1), target.to(self.device)
+        return self.model(pred, target, normalize=True).reshape(-1).cpu()
+
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> float:
+        return float(self.per_image(pred, target).mean())
+
+
 class LPIPS:
     """LPIPS (Zhang et al. 2018, VGG variant) with the backbone loaded from a local torchvision state dict."""
+
+    name = "LPIPS (VGG; Zhang et al. 2018)"
 
     def __init__(self, backbone_path: str | Path, device: torch.device = CPU):
         import lpips
         from torchvision.models import vgg16
 
         path = Path(backbone_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: VGG16 ImageNet weights for LPIPS not found")
         self.model = lpips.LPIPS(net="vgg", pretrained=True, pnet_rand=True, verbose=False).eval()
         vgg = vgg16()
-        vgg.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        vgg.load_state_dict(load_tensors(path, "VGG16 ImageNet weights for LPIPS"))
         load_backbone(self.model, vgg.features)
         self.model.to(device)
         self.device = device
-        self.name = f"lpips-vgg:{path.name}"
 
     @torch.no_grad()
-    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> float:
+    def per_image(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         pred, target = pred.to(self.device), target.to(self.device)
-        return float(self.model(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).mean())
+        return self.model(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).reshape(-1).cpu()
+
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> float:
+        return float(self.per_image(pred, target).mean())
 
 
 def load_backbone(lpips_model, vgg_features: torch.nn.Sequential) -> None:
@@ -67,15 +112,14 @@ def load_backbone(lpips_model, vgg_features: torch.nn.Sequential) -> None:
 def lpips_metric(backbone_path: str | None, device: torch.device = CPU):
     """An LPIPS callable (computed on `device`), or None (reported missing) when no backbone weights are given."""
     if not backbone_path:
-        log.warning("LPIPS: no VGG16 ImageNet weights given (finetune.lpips_backbone): LPIPS is reported missing")
+        log.warning("LPIPS (VGG): no VGG16 ImageNet weights given (evaluate.lpips_backbone): reported missing; "
+                    "ST-LPIPS (AlexNet, weights shipped with stlpips-pytorch) is measured instead")
         return None
     return LPIPS(backbone_path, device)
 
 
 @lru_cache(maxsize=1)
 def _face_models():
-    import importlib.util
-
     import dlib
 
     folder = Path(list(importlib.util.find_spec("face_recognition_models").submodule_search_locations)[0]) / "models"
@@ -83,15 +127,27 @@ def _face_models():
             dlib.face_recognition_model_v1(str(folder / "dlib_face_recognition_resnet_model_v1.dat")))
 
 
-def face_descriptor(image_rgb: np.ndarray) -> np.ndarray | None:
-    """128-d dlib face descriptor of the largest face, or None."""
-    detector, predictor, encoder = _face_models()
+def find_face(image_rgb: np.ndarray, upsample: int = 1):
+    """dlib's largest face in an RGB uint8 image: (box, 68 landmarks (68, 2)) or None."""
+    detector, predictor, _ = _face_models()
     image = np.ascontiguousarray(image_rgb)
-    boxes = detector(image, 1)
+    boxes = detector(image, upsample)
     if not boxes:
         return None
     box = max(boxes, key=lambda b: b.width() * b.height())
-    return np.array(encoder.compute_face_descriptor(image, predictor(image, box)))
+    shape = predictor(image, box)
+    return box, np.array([[p.x, p.y] for p in shape.parts()], dtype=np.float64)
+
+
+def face_descriptor(image_rgb: np.ndarray, face=None) -> np.ndarray | None:
+    """128-d dlib face descriptor of the largest face, or None."""
+    face = face if face is not None else find_face(image_rgb)
+    if face is None:
+        return None
+
+    _, predictor, encoder = _face_models()
+    image = np.ascontiguousarray(image_rgb)
+    return np.array(encoder.compute_face_descriptor(image, predictor(image, face[0])))
 
 
 def identity_similarity(pred_rgb: np.ndarray, target_rgb: np.ndarray) -> float | None:
@@ -100,3 +156,33 @@ def identity_similarity(pred_rgb: np.ndarray, target_rgb: np.ndarray) -> float |
     if a is None or b is None:
         return None
     return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def face_metrics(preds: np.ndarray, targets: np.ndarray, target_landmarks: np.ndarray | None = None) -> dict:
+    """Over a set of renders (N, H, W, 3) uint8 and their ground-truth frames: dlib's detection rate on the
+    renders, the 68-point NME of the render's landmarks against the truth's (target_landmarks (N, 68, 2), NaN where
+    unknown; default dlib on the target frames) normalised by the truth's outer-eye distance, and the identity
+    similarity. NME and identity average over the frames where both faces are found; None where there are none."""
+    found, nmes, ids = 0, [], []
+    for i, (pred, target) in enumerate(zip(preds, targets)):
+        face = find_face(pred)
+        if face is None:
+            continue
+        found += 1
+        truth_face = None
+        truth = None if target_landmarks is None else target_landmarks[i]
+        if truth is None or not np.isfinite(truth).all():
+            truth_face = find_face(target)
+            truth = None if truth_face is None else truth_face[1]
+        if truth is not None:
+            iod = np.linalg.norm(truth[36] - truth[45])
+            nmes.append(float(np.linalg.norm(face[1] - truth, axis=1).mean() / max(iod, 1e-6)))
+        a = face_descriptor(pred, face)
+        b = face_descriptor(target, truth_face)
+        if a is not None and b is not None:
+            ids.append(float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))))
+    n = len(preds)
+    return {"face_detection_rate": found / n if n else None,
+            "landmark_nme": float(np.mean(nmes)) if nmes else None,
+            "identity_similarity": float(np.mean(ids)) if ids else None,
+            "faces_compared": len(nmes)}
