@@ -7,23 +7,9 @@ import torch
 
 from avatarlab.apps.avatar import orbit
 from avatarlab.apps.telepresence import payload
-from avatarlab.evaluate.report import PUBLISHED_TABLE2, Table, comparison_table, interp_table
+from avatarlab.evaluate.report import PUBLISHED_TABLE2, Table, comparison_table, final_avatar_table, interp_table
 from avatarlab.render.camera import Camera
-from avatarlab.train.finetune import split
-from avatarlab.train.pretrain import replace_with_interpolated
-
-
-def test_interpolation_variants_of_the_training_split():
-    fitted = np.ones(20, bool)
-    fitted[4] = False
-    a, test = split(20, fitted, 6, "a")
-    b, test_b = split(20, fitted, 6, "b")
-    c, test_c = split(20, fitted, 6, "c", interpolated=[1, 3, 5, 7, 9, 11, 13, 15, 17])
-    assert list(test) == list(test_b) == list(test_c) == [14, 15, 16, 17, 18, 19]
-    assert list(b) == [0, 2, 6, 8, 10, 12]  # even, fitted, before the test frames
-    assert list(c) == [0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 11, 12, 13]  # + re-created odd ones, none from the test part
-    with pytest.raises(ValueError, match="frames_variant"):
-        split(20, fitted, 6, "d")
+from avatarlab.data.real_images import replace_with_interpolated, z_augment
 
 
 def test_recreated_frames_take_the_interpolated_image_and_the_neighbours_mean(tmp_path):
@@ -40,9 +26,7 @@ def test_recreated_frames_take_the_interpolated_image_and_the_neighbours_mean(tm
            "K": np.tile(np.eye(3), (n, 1, 1)), "R": np.stack([np.eye(3), np.eye(3), rot, np.eye(3), np.eye(3)]),
            "t": np.arange(n, dtype=float)[:, None].repeat(3, 1)}
     fit["expression"][1] = 99.0  # the real fit of a re-created frame must not leak in
-    path = tmp_path / "interpolated.npz"
-    np.savez(path, indices=np.array([1, 3]), frames=np.full((2, 8, 8, 3), 200, np.uint8), kept=np.array([0, 2, 4]))
-    done = replace_with_interpolated(frames, masks, fit, path)
+    done = replace_with_interpolated(frames, masks, fit, np.array([1, 3]), np.full((2, 8, 8, 3), 200, np.uint8))
     assert list(done) == [1, 3]
     assert (frames[1] == 200).all() and (frames[0] == 0).all()
     assert masks[1].sum() == 64 and masks[1][:4].all() and masks[1][4:].all()  # union of the neighbours
@@ -52,8 +36,7 @@ def test_recreated_frames_take_the_interpolated_image_and_the_neighbours_mean(tm
     assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(10.0, abs=1e-6)  # halfway rotation
     assert fit["fitted"][3]  # frame 3 was not fitted, its neighbours 2 and 4 were: it is re-created
     with pytest.raises(ValueError, match="interpolated frames are"):
-        np.savez(path, indices=np.array([1]), frames=np.zeros((1, 4, 4, 3), np.uint8), kept=np.array([0]))
-        replace_with_interpolated(frames, masks, fit, path)
+        replace_with_interpolated(frames, masks, fit, np.array([1]), np.zeros((1, 4, 4, 3), np.uint8))
 
 
 def test_novel_view_orbit_and_telepresence_payload():
@@ -69,27 +52,57 @@ def test_novel_view_orbit_and_telepresence_payload():
     assert message.shape == (3, 12 + 50 + 6)
 
 
-def run(subject, init, variant, psnr, lpips=None, seconds=30.0):
-    part = {"frames": 3, "psnr": psnr, "ssim": 0.8, "lpips": lpips, "identity_similarity": None}
-    return {"subject": subject, "init": init, "frames_variant": variant, "train_frames": 9, "iterations": 5,
-            "train_seconds": seconds, "test": {"all": part, "mouth_open": part, "render_seconds_per_frame": 0.01}}
+def test_z_augmentation_moves_the_head_along_the_optical_axis(head_model):
+    """Zooming the image by s about the principal point is what the camera sees when the head's camera-space z
+    becomes z / s: the landmarks projected with the augmented camera land where the zoom put them."""
+    from avatarlab.render.camera import orbit_camera
+
+    cam = orbit_camera(torch.ones(1), 5.0, 3.0, image_size=(64, 64), focal=180.0)
+    cam.t[:, 0] += 0.02  # the head off the optical axis too
+    with torch.no_grad():
+        lm = head_model(*[v for k, v in head_model.zeros(1).items() if k != "texture"]).landmarks3d
+    g = torch.Generator().manual_seed(0)
+    images = torch.zeros(1, 3, 64, 64)
+    _, _, moved = z_augment(images, torch.ones(1, 1, 64, 64), cam, g, 1.2, 1.2, p=1.0)
+    before, after = cam.project(lm)[0, :, :2], moved.project(lm)[0, :, :2]
+    centre = cam.K[0, :2, 2]
+    expected = centre + (before - centre) * 1.2
+    assert moved.t[0, 2] == pytest.approx(float(cam.t[0, 2]) / 1.2) and torch.equal(moved.K, cam.K)
+    assert (after - expected).norm(dim=-1).max() < 0.02 * 64, "within the perspective change over the head's depth"
 
 
-def test_report_tables_label_published_rows_and_never_invent_numbers(tmp_path):
-    avatars = [run("s", "beta6_from_alpha2", "a", 24.0), run("s", "beta6_from_alpha2", "b", 23.0),
-               run("s", "beta6_from_alpha2", "c", 23.5), run("s", "alpha1", "a", 22.0)]
+def avatar(subject, recipe, init, variant, psnr, best=20.0, lpips=None, seconds=30.0):
+    scores = {"psnr": psnr, "psnr_head": psnr - 5, "ssim": 0.8, "lpips": lpips, "st_lpips": 0.3,
+              "face_detection_rate": 1.0, "landmark_nme": 0.05, "identity_similarity": 0.9}
+    base = {"last_frame": dict(scores, psnr=best), "mean_frame": dict(scores, psnr=best - 1)}
+    part = {"frames": 3, "model": scores, "baselines": base,
+            "gain": {"psnr": {"best_baseline": "last_frame", "baseline": best, "gain": psnr - best,
+                              "beats": psnr > best}}}
+    return {"subject": subject, "recipe": recipe, "init": init, "variant": variant,
+            "train": {"train_seconds": seconds},
+            "eval": {"all": part, "mouth_open": part, "render_seconds_per_frame": 0.01, "frames_variant": variant}}
+
+
+def test_report_tables_carry_baselines_label_published_rows_and_never_invent_numbers(tmp_path):
+    avatars = [avatar("s", "final", "beta6_from_alpha2", "a", 24.0), avatar("s", "base", "beta6_from_alpha2", "a", 19.0),
+               avatar("s", "base", "beta6_from_alpha2", "b", 23.0), avatar("s", "base", "beta6_from_alpha2", "c", 23.5)]
     table = comparison_table(avatars, "beta6_from_alpha2", "tiny")
     assert [r["source"] for r in table.rows] == ["published"] * len(PUBLISHED_TABLE2) + ["this run"]
     assert table.rows[-1]["psnr"] == 24.0 and table.rows[-1]["lpips"] is None
+    assert table.rows[-1]["best_baseline_psnr"] == "20.00 (last_frame)"
     md = table.markdown()
     assert "| published | proposed (dissertation) | INSTA, 256x256 | 26.2867 | 0.8952 | 0.0461 |" in md
     assert "| this run |" in md and "missing" in md
-    interp = interp_table(avatars, tmp_path)
+    interp = interp_table(avatars, "beta6_from_alpha2")
     assert [r["variant"] for r in interp.rows] == ["a", "b", "c"]
     assert interp.rows[2]["gain_c_over_b_db"] == pytest.approx(0.5)
+    assert "1 of 3 rows do NOT beat their best trivial baseline: s / a" in interp.note
     interp.write(tmp_path)
     with open(tmp_path / "interpolation.csv") as f:
         rows = list(csv.DictReader(f))
     assert rows[0]["lpips"] == "" and float(rows[2]["gain_c_over_b_db"]) == pytest.approx(0.5)
+    finals, per_predictor = final_avatar_table(avatars, "beta6_from_alpha2")
+    assert len(finals.rows) == 1 and "Every row (1) beats its best trivial baseline" in finals.note
+    assert [r["predictor"] for r in per_predictor.rows] == ["model", "last_frame", "mean_frame"]
     empty = Table("t", "T", ["a", "b"])
     assert "(no runs)" in empty.markdown()

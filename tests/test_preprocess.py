@@ -11,7 +11,7 @@ from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal
 from avatarlab.render import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.mesh_renderer import vertex_normals
-from conftest import interp_config
+from helpers import interp_config
 
 
 def test_bad_inputs_are_named(tmp_path):

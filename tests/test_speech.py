@@ -11,7 +11,7 @@ from avatarlab.speech.train import align_to, lip_error_percent
 from avatarlab.speech.visemes import NAMES, PHONEMES, mouth_features, normalise_phoneme, phoneme_to_viseme_matrix, \
     viseme_basis, viseme_of
 
-from conftest import SHARED_DATA
+from helpers import SHARED_DATA
 
 needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None,
                                   reason="Debian's espeak-ng is not installed (`make test` installs it where it can)")

@@ -1,5 +1,5 @@
 """A finished avatar: its fine-tuned model from `model.pt`, the subject's fitted frames, and rendering of any
-parameters and camera with it. Shared by the applications and the report."""
+parameters and camera with it. Shared by the applications and speech animation."""
 from __future__ import annotations
 
 import logging
@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-from omegaconf import OmegaConf
 
 from avatarlab.config import CPU
-from avatarlab.headmodel import load_head_model
+from avatarlab.data.subject_dir import SubjectDir
+from avatarlab.model.head_nerf import HeadNeRFModel, assemble_codes, load_model_file, render_in_chunks
 from avatarlab.render.camera import Camera
-from avatarlab.train.pretrain import HeadNeRFModel, codes, nerf_config, render_in_chunks
 
 log = logging.getLogger(__name__)
 
@@ -29,40 +28,22 @@ class Avatar:
     def render(self, params: dict, camera: Camera, batch: int = 4) -> torch.Tensor:
         """params: shape, expression, pose (B, 15), texture, lighting (B, 9, 3) -> images (B, 3, H, W) in [0, 1],
         rendered `batch` at a time on the net's device, returned on the CPU."""
-        geometry, appearance = codes(params, params["lighting"])
+        geometry, appearance = assemble_codes(params, params["lighting"])
         return render_in_chunks(self.net, geometry, appearance, camera, batch).clamp(0, 1)
 
 
 def load_avatar(path: str | Path, device: torch.device = CPU) -> Avatar:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no avatar model (run the fine-tuning step first)")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or "model" not in state or "config" not in state:
-        raise ValueError(f"{path}: not an avatarlab model checkpoint (needs 'model' and 'config')")
-    cfg = OmegaConf.create(state["config"])
-    head = load_head_model(cfg.head_model)
-    net = HeadNeRFModel(nerf_config(cfg, head), cfg.pretrain.renderer, int(cfg.scale.pretrain_feature_size))
-    net.load_state_dict(state["model"])
-    net.eval().to(device)
-    return Avatar(net, state["config"], int(cfg.scale.pretrain_image_size))
+    net, content = load_model_file(path, device)
+    return Avatar(net, content["config"], int(content["spec"]["feature_size"]) * 8)
 
 
 def load_fit(subject_dir: str | Path, image_size: int) -> dict:
-    """A subject's per-frame fit (fit_rgb.npz) as tensors, shared vectors broadcast per frame, K for `image_size`."""
-    path = Path(subject_dir) / "fit_rgb.npz"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: the subject has no RGB fit")
-    with np.load(path) as f:
-        fit = {k: f[k] for k in f.files}
-    n = len(fit["fitted"])
-    for key in ("shape", "texture", "lighting"):
-        if fit[key].ndim == (1 if key != "lighting" else 2):
-            fit[key] = np.broadcast_to(fit[key], (n, *fit[key].shape)).copy()
+    """A subject's per-frame fit as tensors (shared vectors repeated per frame), K for `image_size`."""
+    fit = SubjectDir(subject_dir).fit()
     K = torch.from_numpy(fit["K"]).float()
     K[:, :2] *= image_size / float(fit["image_size"])
-    out = {k: torch.from_numpy(np.asarray(fit[k])).float() for k in ("shape", "expression", "pose", "texture",
-                                                                     "lighting", "R", "t")}
+    out = {k: torch.from_numpy(np.ascontiguousarray(fit[k])).float() for k in ("shape", "expression", "pose",
+                                                                             "texture", "lighting", "R", "t")}
     out["K"], out["fitted"], out["image_size"] = K, torch.from_numpy(fit["fitted"]).bool(), image_size
     return out
 

@@ -10,16 +10,15 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from avatarlab.apps.avatar import open_avatar, orbit, select, to_uint8
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.io import write_json, write_png
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'apps')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def stack_cameras(cameras: list) -> object:
@@ -51,9 +50,8 @@ def sweeps(avatar, fit: dict, frame: int, cfg) -> tuple[list[np.ndarray], dict]:
     return [np.concatenate(list(to_uint8(r)), 1) for r in rows.values()], labels
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     apps = cfg.apps
     avatar, fit = open_avatar(apps, device)
     frames = torch.nonzero(fit["fitted"]).flatten()

@@ -11,17 +11,16 @@ import logging
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from avatarlab.apps.avatar import load_fit, open_avatar, select, to_uint8
-from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.subject_files import load_frame_stack
+from avatarlab.entry import entry_point
 from avatarlab.io import write_json, write_video
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'apps')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def transfer_params(target: dict, source: dict, source_idx: torch.Tensor, identity_frame: int) -> dict:
@@ -34,9 +33,8 @@ def transfer_params(target: dict, source: dict, source_idx: torch.Tensor, identi
     return params
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     apps = cfg.apps
     avatar, target = open_avatar(apps, device)
     source = load_fit(apps.source_dir, avatar.image_size)

@@ -11,19 +11,18 @@ import time
 from pathlib import Path
 
 import cv2
-import hydra
 import kornia
 import numpy as np
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
-from omegaconf import DictConfig
 
 from avatarlab.apps.avatar import open_avatar, select
-from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.subject_files import load_frame_stack
+from avatarlab.entry import entry_point
 from avatarlab.io import write_json
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'apps')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def payload(params: dict, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -36,9 +35,8 @@ def jpeg_bytes(frames: np.ndarray, quality: int) -> list[int]:
             for f in frames]
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     apps = cfg.apps
     avatar, fit = open_avatar(apps, device)
     frames, _ = load_frame_stack(Path(apps.subject_dir))

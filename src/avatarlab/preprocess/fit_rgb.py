@@ -14,23 +14,25 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import hydra
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, CPU, setup_run
+from avatarlab.config import CPU
+from avatarlab.data.subject_dir import SubjectDir
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import HeadModel, load_head_model
 from avatarlab.headmodel.flame import rodrigues
 from avatarlab.headmodel.texture import default_lighting
-from avatarlab.io import atomic_path, write_json, write_png
+from avatarlab.io import write_json, write_png
 from avatarlab.preprocess.frames import load_frame_stack
 from avatarlab.preprocess.track_landmarks import load_landmarks
 from avatarlab.render.camera import Camera, intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'preprocess', 'fit_rgb', 'head_model', 'render')  # the config sections this step reads (avatarlab/entry.py)
 INNER = slice(17, 68)  # the 51 landmarks without the jaw contour (rigid stage)
 
 
@@ -271,6 +273,23 @@ def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, f
                          "photometric_l1": float(photo)}
 
 
+@torch.no_grad()
+def fold_root_into_camera(model: HeadModel, shape: torch.Tensor, pose: torch.Tensor, R: torch.Tensor,
+                          t: torch.Tensor):
+    """The root joint's rotation moves every vertex rigidly, x -> R0 (x - J0) + J0 (pose correctives exclude it),
+    so it is exactly a change of camera: R' = R R0, t' = t + R J0 - R R0 J0, with the root set to zero. The head
+    model network sees neck, jaw and eyes only (seed 002, 3.1.1): a root left in theta would be lost there.
+    shape (B, S), pose (B, 15), R (B, 3, 3), t (B, 3) -> pose, R, t."""
+    zeros = torch.zeros(len(pose), model.n_expression, device=pose.device)
+    j0 = model(shape, zeros, torch.zeros_like(pose)).joints[:, 0]  # rest-pose root joint
+    r0 = rodrigues(pose[:, :3])
+    R_new = R @ r0
+    t_new = t + (R @ j0[..., None]).squeeze(-1) - (R_new @ j0[..., None]).squeeze(-1)
+    pose = pose.clone()
+    pose[:, :3] = 0
+    return pose, R_new, t_new
+
+
 def procrustes_error_mm(a: np.ndarray, b: np.ndarray) -> float:
     """Mean vertex distance (mm) after the similarity transform that best maps a onto b (Umeyama)."""
     ma, mb = a.mean(0), b.mean(0)
@@ -317,9 +336,8 @@ def overlay_sheet(frames: np.ndarray, rendered: np.ndarray, landmarks: np.ndarra
     return np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0)
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
     landmarks, found = load_landmarks(subject_dir)
@@ -344,13 +362,16 @@ def main(cfg: DictConfig) -> None:
     K = np.zeros((n, 3, 3), np.float32)
     R = np.zeros((n, 3, 3), np.float32)
     ids = np.nonzero(fitted)[0]
-    K[ids], R[ids] = camera.K.numpy(), camera.R.numpy()
-    with atomic_path(subject_dir / "fit_rgb.npz") as tmp:
-        one = (lambda v: v.numpy()) if cfg.fit_rgb.mode == "images" else (lambda v: v[0].numpy())  # noqa: E731
-        np.savez(tmp, shape=one(shared["shape"]), texture=one(shared["texture"]),
-                 lighting=one(shared["lighting"]), expression=result["expression"].numpy(),
-                 pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(), fitted=fitted, keyframes=key,
-                 image_size=frames.shape[1])
+    per_image = cfg.fit_rgb.mode == "images"
+    shape_of = shared["shape"][torch.from_numpy(ids)] if per_image else shared["shape"].expand(len(ids), -1)
+    pose, R_ids, t_ids = fold_root_into_camera(model, shape_of, result["pose"][ids], camera.R, result["trans"][ids])
+    result["pose"][ids], result["trans"][ids] = pose, t_ids
+    K[ids], R[ids] = camera.K.numpy(), R_ids.numpy()
+    one = (lambda v: v.numpy()) if per_image else (lambda v: v[0].numpy())  # noqa: E731
+    SubjectDir(subject_dir).write_fit(shape=one(shared["shape"]), texture=one(shared["texture"]),
+                                      lighting=one(shared["lighting"]), expression=result["expression"].numpy(),
+                                      pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(),
+                                      fitted=fitted, keyframes=key, image_size=frames.shape[1])
     rendered = np.zeros_like(frames)
     rendered[ids] = (rendered_rgb.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
     write_png(subject_dir / "fit_rgb_overlay.png", overlay_sheet(frames[ids], rendered[ids], landmarks[ids]))

@@ -14,14 +14,12 @@ import logging
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-from omegaconf import DictConfig
 from scipy.spatial import cKDTree
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import HeadModel, load_head_model
 from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import write_json
@@ -29,8 +27,10 @@ from avatarlab.preprocess.fit_rgb import procrustes_error_mm
 from avatarlab.render.camera import Camera
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.mesh_renderer import vertex_normals
+from avatarlab.safe_load import InputFileError, load_arrays
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'preprocess', 'fit_rgbd', 'head_model')  # the config sections this step reads (avatarlab/entry.py)
 RELIABLE = np.arange(17, 68)  # inner landmarks: the jaw contour lies on the silhouette, where depth is unreliable
 
 
@@ -197,18 +197,17 @@ def fit_texture(model: HeadModel, state, image, mask, K, iterations: int, lr: fl
     return texture.detach(), lighting.detach(), float(loss.detach())
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     fit = cfg.fit_rgbd
     truth_path = cfg.preprocess.truth
     if not truth_path or not Path(truth_path).is_file():
-        raise FileNotFoundError(f"{truth_path}: the RGBD fit runs on synthetic RGBD (a subject with ground truth)")
+        raise InputFileError(f"{truth_path}: the RGBD fit runs on synthetic RGBD (a subject with ground truth)")
     import cv2
 
-    with np.load(truth_path) as t:
-        truth = {k: t[k] for k in ("depth", "masks", "landmarks2d", "K", "R", "t", "shape", "expression", "pose")}
-    cap = cv2.VideoCapture(str(Path(truth_path).parent / "video.mp4"))
+    truth = load_arrays(truth_path, ("depth", "masks", "landmarks2d", "K", "R", "t", "shape", "expression", "pose"),
+                        "a synthetic subject's truth")
+    cap = cv2.VideoCapture(str(fit.video))
     video = []
     while True:
         ok, frame = cap.read()
@@ -265,8 +264,8 @@ def main(cfg: DictConfig) -> None:
               "shape_error_mm": mean("shape_error_mm"), "landmark_rmse_mm": mean("landmark_rmse_mm"),
               "seconds": time.perf_counter() - start, "landmarks": "dlib" if use_detected else "ground truth",
               "published_accuracy_mm": 0.2}
-    rgb_report = Path(cfg.preprocess.subject_dir) / "fit_rgb.json"
-    if rgb_report.is_file():
+    rgb_report = Path(fit.rgb_report) if fit.rgb_report else None
+    if rgb_report is not None and rgb_report.is_file():
         import json
 
         report["rgb_fit_shape_error_mm"] = json.loads(rgb_report.read_text()).get("truth", {}).get("shape_error_mm")

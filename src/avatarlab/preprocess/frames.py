@@ -14,22 +14,18 @@ import shutil
 from pathlib import Path
 
 import cv2
-import hydra
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from avatarlab.config import CONF_DIR, setup_run
 from avatarlab.data.subject_files import load_frame_stack  # noqa: F401  (re-exported for the steps)
+from avatarlab.entry import InputError, entry_point
 from avatarlab.io import write_json
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mpg", ".mpeg", ".mov", ".mkv", ".webm"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
-
-
-class InputError(ValueError):
-    """Unusable input; the message names the file and what is wrong."""
 
 
 def expand_inputs(inputs) -> list[Path]:
@@ -55,11 +51,15 @@ def input_kind(path: Path) -> str:
     raise InputError(f"{path}: not a video ({', '.join(sorted(VIDEO_SUFFIXES))}), image or image folder")
 
 
-def read_video(path: Path, target_fps: float | None, max_frames: int | None):
+def read_video(path: Path, target_fps: float | None, max_frames: int | None, max_missing: float = 0.1):
+    """The frames of a video (every `fps / target_fps`-th), at most `max_frames`. A file that decodes fewer frames
+    than its header declares, by more than the share `max_missing` (a truncated download, a broken encode), stops
+    with the file and the counts named, rather than becoming a shorter subject unnoticed."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     step = max(1, int(round(fps / target_fps))) if target_fps else 1
     frames, index = [], 0
     while True:
@@ -74,6 +74,10 @@ def read_video(path: Path, target_fps: float | None, max_frames: int | None):
     cap.release()
     if not frames:
         raise InputError(f"{path}: no frames could be decoded")
+    capped = max_frames and len(frames) >= max_frames
+    if not capped and declared > 0 and index < declared * (1 - max_missing):
+        raise InputError(f"{path}: only {index} of the {declared} frames its header declares could be decoded "
+                         f"(truncated or damaged file; preprocess.max_missing_frames={max_missing})")
     return frames, fps / step
 
 
@@ -87,14 +91,14 @@ def read_images(paths: list[Path]):
     return frames
 
 
-def load_frames(inputs: list[Path], target_fps, max_frames):
+def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float = 0.1):
     """-> frames (list of RGB uint8), source label per frame, fps, kind."""
     frames, sources, fps, kinds = [], [], None, set()
     for path in inputs:
         kind = input_kind(path)
         kinds.add(kind)
         if kind == "video":
-            clip, clip_fps = read_video(path, target_fps, max_frames and max_frames - len(frames))
+            clip, clip_fps = read_video(path, target_fps, max_frames and max_frames - len(frames), max_missing)
             fps = fps or clip_fps
         else:
             folder = path / "images" if kind == "insta" else path
@@ -168,12 +172,11 @@ def crop_points(points: np.ndarray, meta: dict) -> np.ndarray:
     return (points - np.array([c["cx"] - c["side"] / 2, c["cy"] - c["side"] / 2])) * scale
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     pre = cfg.preprocess
     inputs = expand_inputs(OmegaConf.to_container(pre.inputs))
-    frames, sources, fps, kinds = load_frames(inputs, pre.fps, pre.max_frames)
+    frames, sources, fps, kinds = load_frames(inputs, pre.fps, pre.max_frames, float(pre.max_missing_frames))
     if "insta" in kinds or pre.crop_margin <= 0:
         h, w = frames[0].shape[:2]
         crop = (w // 2, h // 2, min(h, w))

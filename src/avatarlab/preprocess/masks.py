@@ -11,17 +11,16 @@ import logging
 from pathlib import Path
 
 import cv2
-import hydra
 import numpy as np
-from omegaconf import DictConfig
 from tqdm import tqdm
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json
 from avatarlab.preprocess.frames import load_frame_stack
 from avatarlab.preprocess.track_landmarks import load_landmarks
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def seed_mask(shape, landmarks: np.ndarray) -> np.ndarray:
@@ -90,9 +89,8 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
     points, found = load_landmarks(subject_dir)

@@ -8,17 +8,16 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
-from omegaconf import DictConfig
 from tqdm import tqdm
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import InputError, entry_point
 from avatarlab.io import atomic_path, write_json
 from avatarlab.preprocess.frames import crop_points, load_frame_stack
 from avatarlab.preprocess.landmarks import _dlib_models, normalised_mean_error
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def track(frames: np.ndarray, upsample: int):
@@ -59,14 +58,19 @@ def truth_landmarks(truth_path: Path | None, meta: dict) -> np.ndarray | None:
         return crop_points(truth["landmarks2d"][: meta["count"]], meta)
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames, meta = load_frame_stack(subject_dir)
     points, boxes, found = track(frames, int(cfg.preprocess.detector_upsample))
     report = {"frames": len(frames), "found": int(found.sum()), "detection_rate": float(found.mean()),
               "missing_frames": np.nonzero(~found)[0].tolist()}
+    share = float(cfg.preprocess.min_face_share)
+    if found.mean() < share:  # judged here, where it enters: no later step can make up for a missing face
+        inputs = ", ".join(meta.get("inputs", [])) or str(subject_dir / "frames")
+        raise InputError(f"subject {subject_dir.name}: dlib finds a face in {int(found.sum())} of {len(frames)} "
+                         f"frames ({found.mean():.0%}) of {inputs}; at least {share:.0%} are needed "
+                         "(preprocess.min_face_share)")
     gt = truth_landmarks(cfg.preprocess.get("truth"), meta)
     if gt is not None and found.any():
         nmes = [normalised_mean_error(points[i], gt[i]) for i in np.nonzero(found)[0]]

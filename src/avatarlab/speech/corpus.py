@@ -13,13 +13,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from scipy.ndimage import gaussian_filter1d
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import resample
@@ -27,6 +26,7 @@ from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, normalise_phoneme, viseme_of, viseme_parameters
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (avatarlab/entry.py)
 
 GRID_WORDS = [["bin", "lay", "place", "set"], ["blue", "green", "red", "white"], ["at", "by", "in", "with"],
               list("abcdefghijklmnopqrstuvxyz"),
@@ -75,7 +75,7 @@ def build(cfg: DictConfig) -> dict:
     head = load_head_model(cfg.head_model)
     expr_table, jaw_table = viseme_parameters(head)
     tts = Espeak(sp.voice)
-    n_speakers, per_speaker = int(cfg.scale.speech_speakers), int(cfg.scale.speech_utterances)
+    n_speakers, per_speaker = int(cfg.speech.speakers), int(cfg.speech.utterances)
     split_sizes = np.array(sp.split_fractions) * n_speakers
     n_val, n_test = max(1, int(round(split_sizes[1]))), max(1, int(round(split_sizes[2])))
     splits = ["train"] * (n_speakers - n_val - n_test) + ["val"] * n_val + ["test"] * n_test
@@ -108,9 +108,8 @@ def build(cfg: DictConfig) -> dict:
             "items": items, "sample_rate": int(sp.sample_rate)}
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     corpus = build(cfg)
     items = corpus.pop("items")
     out = Path(cfg.speech.corpus)

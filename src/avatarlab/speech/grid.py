@@ -16,12 +16,10 @@ import subprocess
 from pathlib import Path
 
 import cv2
-import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
-from avatarlab.config import CONF_DIR, setup_run
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
@@ -33,6 +31,7 @@ from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import PHONEMES, viseme_basis
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'head_model', 'speech', 'apps')  # the config sections this step reads (avatarlab/entry.py)
 
 GRAMMAR = [{"b": "bin", "l": "lay", "p": "place", "s": "set"}, {"b": "blue", "g": "green", "r": "red", "w": "white"},
            {"a": "at", "b": "by", "i": "in", "w": "with"}, None,
@@ -114,9 +113,8 @@ def align_phonemes(audio: np.ndarray, text: str, tts: Espeak, spec: FeatureSpec)
     return phonemes, words
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     sp = cfg.speech
     clips = sorted(glob.glob(str(sp.grid_clips)))
     if not clips:

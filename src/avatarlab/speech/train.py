@@ -14,12 +14,12 @@ import logging
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-from avatarlab.config import CONF_DIR, CPU, autocast, grad_scaler, setup_run
+from avatarlab.config import CPU, autocast, grad_scaler
+from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import FeatureSpec, windows
@@ -28,6 +28,7 @@ from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, phoneme
 from avatarlab.tracking import start_run
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'amp', 'head_model', 'speech', 'tracking')  # the config sections this step reads (avatarlab/entry.py)
 STABLE = list(range(17, 48))  # brows, nose, eyes
 LIPS = list(range(48, 68))
 
@@ -81,8 +82,8 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, devic
     sp = cfg.speech
     train_items = corpus.split("train")
     feats = np.concatenate([i["windows"].reshape(-1, i["windows"].shape[-1]) for i in train_items])
-    model = AudioToVisemes(feats.shape[1], len(NAMES), len(PHONEMES), basis, int(cfg.scale.speech_channels),
-                           int(cfg.scale.speech_hidden))
+    model = AudioToVisemes(feats.shape[1], len(NAMES), len(PHONEMES), basis, int(cfg.speech.channels),
+                           int(cfg.speech.hidden))
     model.mean.copy_(torch.from_numpy(feats.mean(0)))
     model.std.copy_(torch.from_numpy(feats.std(0) + 1e-5))
     model.to(device)
@@ -95,7 +96,7 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, devic
     chunk, batch = int(sp.chunk_frames), int(sp.batch)
     lambda2 = float(sp.lambda2) if regularize else 0.0
     history = []
-    for epoch in range(int(cfg.scale.speech_epochs)):
+    for epoch in range(int(cfg.speech.epochs)):
         model.train()
         order = rng.permutation(len(train_items))
         for start in range(0, len(order), batch):
@@ -167,9 +168,9 @@ def train_window(cfg, corpus: Corpus, device=CPU):
     flat = np.concatenate([i["landmarks"].reshape(len(i["landmarks"]), -1) for i in train_items])
     mean = flat.mean(0)
     _, sv, vt = np.linalg.svd(flat - mean, full_matrices=False)
-    n_pca = int(cfg.scale.speech_pca)
+    n_pca = int(cfg.speech.pca)
     comps, sigma = vt[:n_pca], sv[:n_pca] / np.sqrt(len(flat) - 1)
-    model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.scale.speech_window_hidden))
+    model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.speech.window_hidden))
     model.to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr))
     amp = bool(cfg.get("amp", False))
@@ -185,7 +186,7 @@ def train_window(cfg, corpus: Corpus, device=CPU):
     x, y = torch.cat(xs).to(device), torch.from_numpy(np.concatenate(ys)).float().to(device)
     g = torch.Generator().manual_seed(int(cfg.seed))
     history = []
-    for epoch in range(int(cfg.scale.speech_epochs)):
+    for epoch in range(int(cfg.speech.epochs)):
         model.train()
         perm = torch.randperm(len(x), generator=g)
         for k in range(0, len(x), int(sp.window_batch)):
@@ -257,19 +258,21 @@ def retargeted_landmarks(head, rig: np.ndarray) -> np.ndarray:
                                  torch.from_numpy(rig[:, 0]).float()).numpy()
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     sp = cfg.speech
     head = load_head_model(cfg.head_model)
     basis = viseme_basis(head)
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
     corpus = Corpus(Path(sp.corpus), basis.numpy(), spec)
     out_dir = Path(sp.out_dir)
-    name = sp.model if sp.model == "window" else f"lstm_{'reg' if sp.regularize else 'noreg'}"
+    name = sp.name
     test = corpus.split("test")
     start = time.perf_counter()
-    with start_run(cfg, "speech", name, {"speech_model": name}, bool(cfg.tracking.enabled)) as mlf:
+    with start_run(cfg, "speech", name, {"speech_model": name}, output=out_dir) as run:
+        mlf = None
+        if run is not None:
+            import mlflow as mlf
         if sp.model == "lstm":
             model, history = train_lstm(cfg, corpus, basis, bool(sp.regularize), device)
             seconds = time.perf_counter() - start
@@ -279,7 +282,7 @@ def main(cfg: DictConfig) -> None:
                             "latency_ms": spec.lookahead_ms + 1000 * step,
                             "real_time_factor": step * 1000 / spec.hop_ms})
             state = {"model": model.state_dict(), "kind": "lstm", "n_features": int(model.mean.shape[0]),
-                     "channels": int(cfg.scale.speech_channels), "hidden": int(cfg.scale.speech_hidden)}
+                     "channels": int(cfg.speech.channels), "hidden": int(cfg.speech.hidden)}
         elif sp.model == "window":
             model, pca, history = train_window(cfg, corpus, device)
             seconds = time.perf_counter() - start
@@ -297,7 +300,8 @@ def main(cfg: DictConfig) -> None:
             pca["reference_poses"] = poses
             metrics.update({"lookahead_ms": 1000 * (int(sp.k_x) // 2) / 25.0,
                             "latency_ms": 1000 * (int(sp.k_x) // 2) / 25.0, "input": "phoneme labels"})
-            state = {"model": model.state_dict(), "kind": "window", "pca": pca}
+            state = {"model": model.state_dict(), "kind": "window",  # tensors and plain values: weights_only loads
+                     "pca": {k: torch.as_tensor(np.asarray(v)) for k, v in pca.items()}}
         else:
             raise ValueError(f"speech.model={sp.model!r}: expected lstm or window")
         state["model"] = {k: v.cpu() for k, v in state["model"].items()}  # loadable without the training device

@@ -12,20 +12,24 @@ import logging
 import time
 from pathlib import Path
 
-import hydra
 import kornia
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from avatarlab.config import CONF_DIR, CPU, autocast, grad_scaler, setup_run
+from avatarlab.config import CPU, autocast, grad_scaler
+from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.preprocess.frames import load_frame_stack
 from avatarlab.preprocess.interp.network import XVFILite
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
+from avatarlab.provenance import code_digest
+from avatarlab.provenance import fingerprint as provenance_fingerprint
+from avatarlab.safe_load import load_tensors
 
 log = logging.getLogger(__name__)
+READS = ('seed', 'amp', 'preprocess', 'interp')  # the config sections this step reads (avatarlab/entry.py)
 
 
 def to_tensor(frames: np.ndarray) -> torch.Tensor:
@@ -45,8 +49,9 @@ def training_triplets(kept: np.ndarray) -> np.ndarray:
 
 
 def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
-          device: torch.device = CPU) -> tuple[XVFILite, list[float]]:
-    """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`."""
+          device: torch.device = CPU, data: dict | None = None) -> tuple[XVFILite, list[float]]:
+    """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`.
+    The checkpoint resumes only the same work: settings, code and the data files in `data` (their digests)."""
     torch.manual_seed(int(cfg.seed))
     model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(cfg.interp.lr))
@@ -54,12 +59,14 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
     scaler = grad_scaler(device, amp)
     rng = np.random.default_rng(int(cfg.seed))
     step, losses = 0, []
-    fingerprint = f"{OmegaConf.to_yaml(cfg.interp)}|seed={cfg.seed}|frames={len(frames)}|triplets={len(triplets)}"
-    if checkpoint.is_file() and torch.load(checkpoint, weights_only=False).get("fingerprint") != fingerprint:
-        log.warning("%s was written with other settings: starting afresh", checkpoint)
-        checkpoint.unlink()
-    if checkpoint.is_file():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
+    settings = {"interp": OmegaConf.to_container(cfg.interp, resolve=True), "seed": int(cfg.seed), "amp": amp,
+                "frames": len(frames), "triplets": np.asarray(triplets).tolist()}
+    fingerprint = provenance_fingerprint(settings, code_digest(__spec__.name if __spec__ else __name__), data or {})
+    state = load_tensors(checkpoint, "an interpolation checkpoint") if checkpoint.is_file() else None
+    if state is not None and state.get("fingerprint") != fingerprint:
+        log.warning("%s belongs to other settings, code or data: starting afresh", checkpoint)
+        state = None
+    if state is not None:
         model.load_state_dict(state["model"])
         optim.load_state_dict(state["optim"])
         if state.get("scaler"):
@@ -101,9 +108,8 @@ def quality(pred: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
             "ssim": float(kornia.metrics.ssim(pred, target, 11).mean())}
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    device = setup_run(cfg)
+@entry_point(READS)
+def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
     frames_np, meta = load_frame_stack(subject_dir)
     frames = to_tensor(frames_np)
@@ -111,7 +117,9 @@ def main(cfg: DictConfig) -> None:
     if len(held) == 0:
         raise ValueError(f"{subject_dir}: {len(frames)} frames are too few to hold any frame out")
     start = time.perf_counter()
-    model, losses = train(frames, training_triplets(kept), cfg, subject_dir / "interp_checkpoint.pt", device)
+    checkpoint = subject_dir / "interp_checkpoint.pt"
+    model, losses = train(frames, training_triplets(kept), cfg, checkpoint, device,
+                          data={"frames": subject_dir / "frames.json", "images": subject_dir / "frames"})
     train_seconds = time.perf_counter() - start
     model.eval()
     with torch.no_grad():
@@ -132,6 +140,7 @@ def main(cfg: DictConfig) -> None:
                            1) for k in show]
     write_png(subject_dir / "interp_comparison.png", np.concatenate(rows, 0))
     write_json(subject_dir / "interp.json", report)
+    checkpoint.unlink(missing_ok=True)  # finished: nothing a later run could mistake for its own
     log.info("interpolation on %d held-out frames: XVFI-style PSNR %.2f dB SSIM %.4f | Farneback %.2f / %.4f | "
              "cross-fade %.2f / %.4f (trained %d its in %.0fs)", len(held), report["xvfi"]["psnr"],
              report["xvfi"]["ssim"], report["farneback"]["psnr"], report["farneback"]["ssim"],
