@@ -1,14 +1,21 @@
-"""Training throughput of the parametric head model and its rendering speed (issue: pretraining benchmark).
+"""Training throughput of the parametric head model, its MLP's arithmetic rate and its rendering speed.
 
-    python benchmarks/bench_pretrain.py [--scale tiny] [--iterations 5] [--threads 2]
+    python benchmarks/bench_pretrain.py [--scale tiny] [--iterations 20] [--threads 2] [--amp | --no-amp]
 
-Prints, for the chosen scale's sizes: samples/s of a training step (synthetic samples rendered by the head model,
-CNeRF + 2D renderer forward and backward), the CNeRF MLP's achieved GFLOPS (from an exact count of its linear
-layers), and the inference frame rate of CNeRF + renderer at the scale's image size (and at 128x128).
+Prints, at the scale's sizes and in one process:
+- samples/s of a training step as pretraining runs it (alpha: every sample synthetic, so the head-model renders
+  are included): the batch drawn by the training code's BatchStream (one batch ahead in a background thread) and
+  the loop's train_step (CNeRF + 2D renderer forward and backward, eq. 8, Adam);
+- the CNeRF MLP's achieved GFLOPS over the points of one training batch (forward + backward, FLOPs counted by
+  torch's FlopCounterMode, so the per-sample conditioning projection is counted as what it is) beside the sgemm rate
+  of a 2048 x 2048 float32 matrix product measured in the same run;
+- frames/s of rendering an image (inference) at the scale's size and at 128x128.
+Timings are the median over repeats; the machine is shared, so compare figures of one run with each other.
 """
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -16,100 +23,124 @@ from types import SimpleNamespace
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # tests/helpers
 
 
-def mlp_flops_per_point(nerf) -> int:
-    """Multiply-adds x 2 of every Linear layer of the CNeRF MLP for one sample point (forward)."""
-    return sum(2 * m.in_features * m.out_features for m in nerf.modules() if isinstance(m, torch.nn.Linear))
+def median_seconds(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
-def training_setup(cfg, image_size: int, feature_size: int, batch: int) -> SimpleNamespace:
-    """The head model's synthetic generator and a CNeRF + proposed renderer with its optimiser at the config's sizes:
-    `sample()` draws a batch of synthetic samples, `train_step(sample)` is one forward + backward + Adam step."""
+def sgemm_gflops(size: int = 2048, repeats: int = 10) -> float:
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    return 2 * size**3 / median_seconds(lambda: a @ b, repeats) / 1e9
+
+
+def training_setup(cfg, batch: int) -> SimpleNamespace:
+    """Pretraining's pieces at the config's sizes, with a real image set of neutral fits (the samples are all
+    synthetic, as in alpha): `stream` draws batches, `step(batch)` is one iteration of the training loop."""
+    from avatarlab.config import grad_scaler
+    from avatarlab.data.batches import BatchSource, BatchStream
+    from avatarlab.data.schedule import Schedule
     from avatarlab.data.synthetic import SyntheticGenerator
     from avatarlab.headmodel import load_head_model
-    from avatarlab.model.losses import RandomConvFeatures, head_model_loss
-    from avatarlab.train.pretrain import HeadNeRFModel, codes, composite, nerf_config
+    from avatarlab.model.head_nerf import build_model
+    from avatarlab.model.losses import RandomConvFeatures
+    from avatarlab.train.loop import Recipe, make_optimizer, offset_table, train_step
 
     head = load_head_model(cfg.head_model)
-    real = {"shape": torch.zeros(4, head.n_shape), "expression": torch.zeros(4, head.n_expression),
-            "texture": torch.zeros(4, head.n_texture), "lighting": torch.zeros(4, 9, 3)}
-    real["lighting"][:, 0] = 2.8
-    gen = SyntheticGenerator(head, real, cfg.synthetic, image_size, (0.5, 0.5, 0.5))
+    n = 8
+    real = SimpleNamespace(params={"shape": torch.zeros(n, head.n_shape), "expression": torch.zeros(n, head.n_expression),
+                                   "texture": torch.zeros(n, head.n_texture), "lighting": torch.zeros(n, 9, 3)})
+    real.params["lighting"][:, 0] = 2.8
+    real.__len__ = lambda: n
+    size = int(cfg.model.image_size)
+    device = torch.device("cpu")
+    gen = SyntheticGenerator(head, real.params, cfg.synthetic, size, tuple(cfg.render.background), device)
     torch.manual_seed(0)
-    net = HeadNeRFModel(nerf_config(cfg, head), "proposed", feature_size)
-    optim = torch.optim.Adam(net.parameters(), lr=1e-4)
-    feats = RandomConvFeatures()
-    g = torch.Generator().manual_seed(0)
+    net = build_model(cfg, head)
+    schedule = Schedule(M=10**9, N=10**9, p_min=1.0, p_max=1.0, mouth_from=None)
+    recipe = Recipe(schedule=schedule, start=0, batch=batch, lr=1e-3, offset_lr=1e-3, amp=bool(cfg.amp))
+    offsets = offset_table(n, {"pose": 12}, (), device)
+    optim = make_optimizer(net, offsets, recipe, device)
+    scaler, feats = grad_scaler(device, recipe.amp), RandomConvFeatures()
+    source = BatchSource(synthetic=gen, real=SimpleNamespace(__len__=lambda: n), schedule=schedule, batch_size=batch,
+                         device=device)
+    stream = BatchStream(source, 0, 10**9, torch.Generator().manual_seed(0))
+    return SimpleNamespace(net=net, gen=gen, source=source, stream=stream, recipe=recipe, device=device,
+                           step=lambda b: train_step(net, b, offsets, feats, optim, scaler, recipe, device))
 
-    def train_step(s):
-        geometry, appearance = codes(s["params"], s["lighting"])
-        optim.zero_grad()
-        pred = net(geometry, appearance, s["camera"])
-        loss = head_model_loss(pred, composite(s["images"], s["masks"]), s["masks"], feats, {}, {},
-                               torch.zeros(batch, dtype=torch.bool))["total"]
-        loss.backward()
-        optim.step()
 
-    return SimpleNamespace(gen=gen, net=net, real=real, g=g, sample=lambda: gen.sample(batch, g),
-                           train_step=train_step)
+def mlp_rate(run, cfg, batch: int, repeats: int) -> tuple[float, float]:
+    """GFLOP and GFLOPS of the CNeRF MLP over one training batch's points (forward + backward)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from avatarlab.config import autocast
+    from avatarlab.model.head_nerf import assemble_codes
+
+    fs, samples = int(cfg.model.feature_size), int(cfg.model.samples)
+    points = batch * fs * fs * samples
+    s = run.gen.sample(batch, torch.Generator().manual_seed(1))
+    geometry, appearance = assemble_codes(s["params"], s["lighting"])
+    x = (torch.rand(points, 3) - 0.5) * 0.4
+    owner = torch.arange(batch).repeat_interleave(points // batch)
+
+    def forward_backward():
+        with autocast(run.device, run.recipe.amp):
+            sigma, feat = run.net.nerf(x, owner, geometry, appearance)
+        (sigma.float().sum() + feat.float().sum()).backward()
+
+    with FlopCounterMode(display=False) as counter:
+        forward_backward()
+    flops = counter.get_total_flops()
+    return flops / 1e9, flops / median_seconds(forward_backward, repeats) / 1e9
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scale", default="tiny")
-    parser.add_argument("--iterations", type=int, default=5)
+    parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
+                        help="bfloat16 autocast (default: the config's amp)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    from conftest import compose_config
+    from helpers import compose_config
 
-    from avatarlab.train.pretrain import codes
+    overrides = [f"scale={args.scale}"] + ([f"amp={str(args.amp).lower()}"] if args.amp is not None else [])
+    cfg = compose_config(overrides)
+    m, batch = cfg.model, int(cfg.pretrain.batch)
+    run = training_setup(cfg, batch)
+    step_time = median_seconds(lambda: run.step(run.stream.next()), args.iterations)
+    serial = median_seconds(lambda: run.step(run.source.draw(1, torch.Generator().manual_seed(2))),
+                            max(3, args.iterations // 4))
+    run.stream.close()
+    gflop, gflops = mlp_rate(run, cfg, batch, 10)
+    sgemm = sgemm_gflops()
+    print(f"scale {args.scale}: batch {batch}, image {m.image_size}x{m.image_size}, feature map "
+          f"{m.feature_size}x{m.feature_size}, {m.samples} samples/ray, MLP {m.depth}x{m.width}, renderer "
+          f"{m.renderer} (min {m.renderer_min_channels} channels); {args.threads} threads; "
+          f"{'bfloat16 autocast' if cfg.amp else 'float32'}")
+    print(f"training step: {step_time * 1000:.0f} ms, {batch / step_time:.1f} samples/s (synthetic rendering "
+          f"included; without the background batch thread: {serial * 1000:.0f} ms, {batch / serial:.1f} samples/s)")
+    print(f"CNeRF MLP forward+backward over one batch's points: {gflop:.2f} GFLOP at {gflops:.1f} GFLOPS = "
+          f"{100 * gflops / sgemm:.0f} % of sgemm ({sgemm:.1f} GFLOPS, 2048x2048 float32, same run)")
+    net = run.net.eval()
+    from avatarlab.model.head_nerf import assemble_codes
 
-    cfg = compose_config([f"scale={args.scale}"])
-    size, fsize, batch = cfg.scale.pretrain_image_size, cfg.scale.pretrain_feature_size, cfg.scale.pretrain_batch
-    run = training_setup(cfg, size, fsize, batch)
-    gen, net, real, g = run.gen, run.net, run.real, run.g
-
-    def step():  # synthetic rendering included, as in training
-        run.train_step(run.sample())
-
-    step()
-    t0 = time.perf_counter()
-    for _ in range(args.iterations):
-        step()
-    per_step = (time.perf_counter() - t0) / args.iterations
-    points = batch * fsize * fsize * cfg.model.samples
-    flops = 3 * points * mlp_flops_per_point(net.nerf)  # forward + backward ~ 3x forward
-    mlp_time = time.perf_counter()
-    x = torch.rand(batch, fsize * fsize * cfg.model.samples, 3, requires_grad=False)
-    gc, ac = codes(gen.sample(batch, g)["params"], real["lighting"][:batch].repeat(batch // 4 + 1, 1, 1)[:batch])
-    sigma, feat = net.nerf(x, gc, ac)
-    (sigma.sum() + feat.sum()).backward()
-    mlp_time = time.perf_counter() - mlp_time
-    print(f"scale {args.scale}: batch {batch}, image {size}x{size}, feature map {fsize}x{fsize}, "
-          f"{cfg.model.samples} samples/ray, MLP {cfg.model.depth}x{cfg.model.width}; {args.threads} threads")
-    print(f"training step: {per_step * 1000:.0f} ms, {batch / per_step:.1f} samples/s "
-          f"(synthetic rendering included)")
-    print(f"CNeRF MLP forward+backward: {flops / 1e9:.2f} GFLOP in {mlp_time * 1000:.0f} ms = "
-          f"{flops / 1e9 / mlp_time:.1f} GFLOPS")
-    net.eval()
-    for res in sorted({size, 128}):
-        s = gen.sample(1, g)
-        geometry, appearance = codes(s["params"], s["lighting"])
-        cam = s["camera"]
-        cam = type(cam)(K=cam.K * torch.tensor([[res / size], [res / size], [1.0]]), R=cam.R, t=cam.t,
-                        image_size=(res, res))
+    for res in sorted({int(m.image_size), 128}):
+        s = run.gen.sample(1, torch.Generator().manual_seed(3))
+        geometry, appearance = assemble_codes(s["params"], s["lighting"])
+        cam = s["camera"].scaled((res, res))
         net.feature_size = res // 8
         with torch.no_grad():
-            net(geometry, appearance, cam, stratified=False)
-            t0 = time.perf_counter()
-            for _ in range(5):
-                net(geometry, appearance, cam, stratified=False)
-        fps = 5 / (time.perf_counter() - t0)
+            fps = 1 / median_seconds(lambda: net(geometry, appearance, cam, stratified=False), 5)
         print(f"render {res}x{res} (feature map {res // 8}x{res // 8}): {fps:.1f} frames/s")
-    net.feature_size = fsize
 
 
 if __name__ == "__main__":

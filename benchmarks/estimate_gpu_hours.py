@@ -35,7 +35,7 @@ def paper_step(image_size: int, feature_size: int, batch: int, threads: int, ste
     """(seconds per step, FLOPs per step) of a paper-size training step at `batch` on this CPU."""
     torch.set_num_threads(threads)
     from bench_pretrain import training_setup
-    from conftest import compose_config
+    from helpers import compose_config
 
     run = training_setup(compose_config(["scale=paper"]), image_size, feature_size, batch)
     samples = [run.sample() for _ in range(steps + 1)]  # the head-model renders are not the model's cost
@@ -56,7 +56,7 @@ def main() -> None:
     parser.add_argument("--subjects", type=int, default=10, help="avatars fine-tuned (INSTA has 10 subjects)")
     parser.add_argument("--out", default=None, help="also write the table as Markdown here")
     args = parser.parse_args()
-    from conftest import compose_config
+    from helpers import compose_config
 
     s = compose_config(["scale=paper"]).scale
     batch = int(s.pretrain_batch)

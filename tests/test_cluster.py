@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO, run_snakemake, workflow_env
+from helpers import REPO, run_snakemake, workflow_env
 
 SCRIPT = REPO / "cluster" / "local_cluster.sh"
 # the synthetic subject's preprocessing chain at smoke scale: five steps, each a SLURM job
@@ -117,7 +117,7 @@ def test_paper_scale_dry_run_lists_the_full_graph_with_cluster_resources(tmp_pat
     assert "threads: 8" in pretrain and re.search(r"runtime=10080, gpu=1, mem_mb=64000", pretrain), pretrain
     light = next(j for j in jobs if j.startswith("extract_frames:"))
     assert re.search(r"gpu=0, mem_mb=16000", light)
-    assert "'scale=paper'" in pretrain
+    assert " scale=paper " in pretrain and "'pretrain.out_dir=\"results/paper/pretrain/alpha1\"'" in pretrain
 
 
 @pytest.mark.slow

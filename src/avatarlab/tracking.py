@@ -2,18 +2,23 @@
 
 The ./mlruns file store raises in MLflow >= 3.13, so the default is `sqlite:///<abs>/results/mlflow.db`. The database
 and experiments are created once (`python -m avatarlab.tracking init`, the workflow's first rule) before parallel jobs
-write to it. Child runs in other processes link to a parent with the `mlflow.parentRunId` tag.
+write to it; that rule also marks runs whose process died (kill -9, a lost node) as KILLED.
+One step, one run: a resumed training continues its own run (the id is kept in the checkpoint), the evaluation step
+logs its metrics into the run of the model it scores, and a rerun of a step retires (deletes) the run it replaces,
+so the dashboard never shows two finished runs of the same step.
 """
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+TELEMETRY_OFF = {"MLFLOW_DISABLE_TELEMETRY": "true", "DO_NOT_TRACK": "true"}
 
 
 def tracking_uri(results_dir: str | Path = "results") -> str:
@@ -40,16 +45,22 @@ def artifact_root(results_dir: str | Path = "results") -> str:
     return (Path(results_dir).resolve() / "mlartifacts").as_uri()
 
 
-def ensure_experiment(name: str, results_dir: str | Path) -> str:
+def _mlflow(results_dir):
+    os.environ.update(TELEMETRY_OFF)
     import mlflow
 
+    mlflow.set_tracking_uri(tracking_uri(results_dir))
+    return mlflow
+
+
+def ensure_experiment(name: str, results_dir: str | Path) -> str:
+    mlflow = _mlflow(results_dir)
     exp = mlflow.get_experiment_by_name(name)
     if exp is not None:
         return exp.experiment_id
     try:
-        # experimentKind: the UI opens the experiment as model training (runs table), not as a GenAI app
-        # a tracking server keeps the artifacts where it was told to (--artifacts-destination); the SQLite default
-        # keeps them beside the database
+        # experimentKind: the UI opens the experiment as model training (runs table), not as a GenAI app;
+        # a tracking server keeps the artifacts where it was told to, the SQLite default beside the database
         remote = mlflow.get_tracking_uri().startswith(("http://", "https://"))
         return mlflow.create_experiment(name, artifact_location=None if remote else artifact_root(results_dir),
                                         tags={"mlflow.experimentKind": "custom_model_development"})
@@ -60,33 +71,131 @@ def ensure_experiment(name: str, results_dir: str | Path) -> str:
         return exp.experiment_id
 
 
-def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
-    import mlflow
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
+
+def mark_dead_runs_killed(results_dir: str | Path, experiments: list[str]) -> int:
+    """Runs still RUNNING whose process (pid tag, on this host) is gone become KILLED. -> how many."""
+    mlflow = _mlflow(results_dir)
+    client = mlflow.tracking.MlflowClient()
+    host, count = socket.gethostname(), 0
+    ids = [e.experiment_id for e in (mlflow.get_experiment_by_name(n) for n in experiments) if e is not None]
+    if not ids:
+        return 0
+    for run in client.search_runs(ids, "attributes.status = 'RUNNING'", max_results=5000):
+        tags = run.data.tags
+        if tags.get("host") == host and tags.get("pid", "").isdigit() and not _alive(int(tags["pid"])):
+            client.set_terminated(run.info.run_id, status="KILLED")
+            count += 1
+    return count
+
+
+def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
     Path(results_dir).mkdir(parents=True, exist_ok=True)
-    uri = tracking_uri(results_dir)
-    mlflow.set_tracking_uri(uri)
-    for scale in scales:
-        ensure_experiment(experiment_name(scale), results_dir)
-    return uri
+    names = [experiment_name(s) for s in scales]
+    for name in names:
+        ensure_experiment(name, results_dir)
+    killed = mark_dead_runs_killed(results_dir, names)
+    if killed:
+        log.info("%d runs left RUNNING by a process that no longer exists are now KILLED", killed)
+    return tracking_uri(results_dir)
+
+
+def _retire_superseded(mlflow, experiment_id: str, output: str, keep: str) -> None:
+    """Delete the earlier runs of the same step (same `output` tag), so a rerun leaves one run."""
+    client = mlflow.tracking.MlflowClient()
+    escaped = output.replace("'", "\\'")
+    for run in client.search_runs([experiment_id], f"tags.output = '{escaped}'", max_results=1000):
+        if run.info.run_id != keep:
+            client.delete_run(run.info.run_id)
 
 
 @contextlib.contextmanager
-def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, enabled: bool = True):
-    """An MLflow run with the standard tags; yields the mlflow module (or None when tracking is off)."""
-    if not enabled:
+def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: str | None = None,
+              output: str | Path | None = None):
+    """An MLflow run with the standard tags; yields the active run (or None when tracking is off).
+    `run_id`: continue that run (a resumed step). `output`: the step's output folder, which identifies the step:
+    a new run retires the earlier runs of the same output."""
+    tr = cfg.tracking
+    if not tr.enabled:
         yield None
         return
-    import mlflow
+    mlflow = _mlflow(cfg.paths.results)
+    experiment_id = ensure_experiment(tr.experiment, cfg.paths.results)
+    mlflow.set_experiment(experiment_id=experiment_id)
+    all_tags = {"stage": stage, "scale": tr.scale, "git_sha": git_sha(), "pid": str(os.getpid()),
+                "host": socket.gethostname(),
+                "results_dir": str(Path(cfg.paths.results).resolve())}  # which checkout / work dir, on a server
+    if output is not None:
+        all_tags["output"] = str(Path(output).resolve())
+    all_tags.update({k: str(v) for k, v in (tags or {}).items() if v is not None})
+    existing = None
+    if run_id:
+        try:
+            existing = mlflow.get_run(run_id)
+        except Exception:  # deleted, or another store
+            existing = None
+    if existing is not None:
+        run = mlflow.start_run(run_id=run_id)
+        mlflow.set_tags({"pid": all_tags["pid"], "host": all_tags["host"]})
+    else:
+        run = mlflow.start_run(run_name=run_name, tags=all_tags)
+        if output is not None:
+            _retire_superseded(mlflow, experiment_id, all_tags["output"], run.info.run_id)
+    with run:
+        yield run
 
-    mlflow.set_tracking_uri(tracking_uri(cfg.paths.results))
-    ensure_experiment(experiment_name(cfg.scale.name), cfg.paths.results)
-    mlflow.set_experiment(experiment_name(cfg.scale.name))
-    all_tags = {"stage": stage, "scale": cfg.scale.name, "git_sha": git_sha(), "head_model": cfg.head_model.kind,
-                "results_dir": str(Path(cfg.paths.results).resolve())}  # which checkout / work dir, on a shared server
-    all_tags.update({k: str(v) for k, v in (tags or {}).items()})
-    with mlflow.start_run(run_name=run_name, tags=all_tags):
-        yield mlflow
+
+def log_to_run(cfg, run_id: str | None, model: dict, baselines: dict, gains: dict, prefix: str = "test",
+               artifact: Path | None = None, extra: dict | None = None) -> None:
+    """An evaluation's numbers into the run of the model it scored: `<prefix>_<metric>` for the model,
+    `<prefix>_baseline_<name>_<metric>` for each baseline, `<prefix>_gain_<metric>` over the best baseline."""
+    if not cfg.tracking.enabled or not run_id:
+        return
+    mlflow = _mlflow(cfg.paths.results)
+    metrics = {f"{prefix}_{k}": v for k, v in model.items() if _number(v)}
+    for name, scores in baselines.items():
+        metrics.update({f"{prefix}_baseline_{name}_{k}": v for k, v in scores.items() if _number(v)})
+    for metric, g in gains.items():
+        metrics[f"{prefix}_gain_{metric}"] = g["gain"]
+    metrics.update({k: v for k, v in (extra or {}).items() if _number(v)})
+    try:
+        with mlflow.start_run(run_id=run_id):
+            mlflow.log_metrics(metrics)
+            mlflow.set_tags({f"{prefix}_best_baseline": gains.get("psnr", {}).get("best_baseline", ""),
+                             f"{prefix}_beats_baselines": str(all(g["beats"] for k, g in gains.items()
+                                                                  if k in ("psnr", "psnr_head")))})
+            if artifact is not None and Path(artifact).is_file():
+                mlflow.log_artifact(str(artifact))
+    except Exception as err:  # the model's run is gone (deleted store): the numbers are in eval.json anyway
+        log.warning("MLflow run %s not updated: %s", run_id, err)
+
+
+def log_history(run, entries: list[dict], keys=("loss", "mse", "perceptual", "psnr", "p_synthetic")) -> None:
+    """Per-iteration training numbers into the active run (each entry once: the loop hands over each segment)."""
+    if run is None or not entries:
+        return
+    import time
+
+    import mlflow
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    metrics = [Metric(k, float(h[k]), now, int(h["step"])) for h in entries for k in keys if k in h]
+    client = mlflow.tracking.MlflowClient()
+    for start in range(0, len(metrics), 1000):  # MLflow's batch limit
+        client.log_batch(run.info.run_id, metrics=metrics[start:start + 1000])
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
 
 
 def main(argv=None) -> int:

@@ -1,4 +1,12 @@
-# Per-subject avatars (fine-tuning from each pretrained model, interpolation variants) and their applications.
+# Per-subject avatars (the final recipe for every subject; base fine-tunes from each pretrained model and the
+# interpolation variants for the ablation subjects), their evaluation, and the applications.
+
+
+def finetune_values(subject, init, model, variant="a"):
+    """The values naming an avatar: its subject, initialisation, folder (that of its model.pt) and frames variant."""
+    return {**PLAN.subject_values(subject), "finetune.subject": subject, "finetune.subject_dir": PLAN.subject_dir(subject),
+            "finetune.init_name": init, "finetune.test_clips": PLAN.test_clips(subject),
+            "finetune.frames_variant": variant, "finetune.out_dir": str(Path(model).parent)}
 
 
 rule finetune_avatar:
@@ -7,68 +15,108 @@ rule finetune_avatar:
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
         model=f"{RESULTS}/pretrain/{{init}}/model.pt",
         tracking=TRACKING_READY,
-        code=module_sources("avatarlab.train.finetune"),
     output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{init}}/model.pt",
-        metrics=f"{RESULTS}/avatars/{{subject}}/{{init}}/metrics.json",
-        frames=report(f"{RESULTS}/avatars/{{subject}}/{{init}}/test_frames.png", caption="../report/avatar.rst",
-                      category="Avatars", subcategory="{subject}"),
+        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}/model.pt",
+        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}/train.json",
     log:
-        f"{LOGS}/avatars/{{subject}}/{{init}}.log",
+        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{init}}.log",
     params:
-        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS, modules=("avatarlab.train.finetune",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}/.hydra"),
-        subject=subject_args,
-        out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}",
+        **step_params(
+            "avatarlab.train.finetune", extra=lambda wc: (f"finetune={wc.recipe}",),
+            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model),
+                                              "finetune.init_model": input.model},
+            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.init}/.hydra"),
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.hydra} threads={threads} {params.subject}"
-        " 'finetune.init_model={input.model}' 'finetune.init_name={wildcards.init}'"
-        " 'finetune.out_dir={params.out_dir}' > {log} 2>&1"
+        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule finetune_interp_variant:
-    """The interpolation experiment's avatars: (b) every second training frame dropped, (c) (b) + the dropped
-    frames re-created by the frame interpolator. Variant (a) is the plain avatar of the same initialisation."""
+    """The interpolation experiment's avatars (base recipe): (b) every second training frame dropped, (c) (b) + the
+    dropped frames re-created by the frame interpolator. Variant (a) is the base avatar of the same init."""
     input:
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
         interpolated=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
         model=f"{RESULTS}/pretrain/{{init}}/model.pt",
         tracking=TRACKING_READY,
-        code=module_sources("avatarlab.train.finetune"),
     output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{init}}_frames{{variant}}/model.pt",
-        metrics=f"{RESULTS}/avatars/{{subject}}/{{init}}_frames{{variant}}/metrics.json",
-        frames=f"{RESULTS}/avatars/{{subject}}/{{init}}_frames{{variant}}/test_frames.png",
+        model=f"{RESULTS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}/model.pt",
+        train=f"{RESULTS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}/train.json",
     log:
-        f"{LOGS}/avatars/{{subject}}/{{init}}_frames{{variant}}.log",
+        f"{LOGS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}.log",
     params:
-        settings=lambda wc: settings("finetune", "preprocess", *TRAIN_SETTINGS, modules=("avatarlab.train.finetune",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}/.hydra"),
-        subject=subject_args,
-        out_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.init}_frames{wc.variant}",
+        **step_params(
+            "avatarlab.train.finetune", extra=lambda wc: ("finetune=base",),
+            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model, wc.variant),
+                                              "finetune.init_model": input.model,
+                                              "finetune.interpolated": input.interpolated},
+            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/base/{wc.init}_frames{wc.variant}/.hydra"),
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.hydra} threads={threads} {params.subject}"
-        " 'finetune.init_model={input.model}' 'finetune.init_name={wildcards.init}'"
-        " 'finetune.frames_variant={wildcards.variant}' 'finetune.interpolated={input.interpolated}'"
-        " 'finetune.out_dir={params.out_dir}' > {log} 2>&1"
+        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+
+
+def avatar_variant(wc):
+    """init and frames variant of an avatar folder name (<init> or <init>_frames<b|c>)."""
+    name = wc.avatar
+    return (name[:-8], name[-1]) if name[-8:-1] == "_frames" else (name, "a")
+
+
+rule evaluate_avatar:
+    """An avatar on its test frames beside the mean, last and nearest training frame; its own step, so a new metric
+    re-scores without retraining."""
+    input:
+        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/model.pt",
+        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        landmarks=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        interpolated=lambda wc: ([f"{RESULTS}/subjects/{wc.subject}/interpolated.npz"]
+                                 if avatar_variant(wc)[1] == "c" else []),
+        tracking=TRACKING_READY,
+    output:
+        report=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/eval.json",
+        frames=report(f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/test_frames.png",
+                      caption="../report/avatar.rst", category="Avatars", subcategory="{subject}"),
+    log:
+        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{avatar}}_eval.log",
+    params:
+        **step_params(
+            "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={wc.recipe}",),
+            values=lambda wc, input, output: {
+                **finetune_values(wc.subject, avatar_variant(wc)[0], input.model, avatar_variant(wc)[1]),
+                "evaluate.model": input.model, "evaluate.out": output.report,
+                **({"finetune.interpolated": input.interpolated[0]} if input.interpolated else {})},
+            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra/eval"),
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
+
+
+def app_step(module, name, **values):
+    """The params of an application of a subject's final avatar (a value may be a function of wc, input, output)."""
+    return step_params(module, values=lambda wc, input, output: {
+        **PLAN.subject_values(wc.subject), "apps.avatar": input.avatar, "apps.subject_dir": PLAN.subject_dir(wc.subject),
+        **{k: v(wc, input, output) for k, v in values.items()}},
+        run_dir=lambda wc: f"{RESULTS}/apps/{wc.subject}/.hydra/{name}")
 
 
 rule novel_views:
     input:
-        avatar=lambda wc: final_avatar(wc.subject),
+        avatar=lambda wc: PLAN.final_avatar(wc.subject),
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        code=module_sources("avatarlab.apps.novel_views"),
     output:
         grid=report(f"{RESULTS}/apps/{{subject}}/novel_views.png", caption="../report/novel_views.rst",
                     category="Applications", subcategory="{subject}"),
@@ -76,25 +124,21 @@ rule novel_views:
     log:
         f"{LOGS}/apps/{{subject}}/novel_views.log",
     params:
-        settings=lambda wc: settings("apps", modules=("avatarlab.apps.novel_views",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/novel_views"),
-        subject=subject_args,
+        **app_step("avatarlab.apps.novel_views", "novel_views", **{"apps.out": lambda wc, i, o: o.grid}),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.novel_views {params.hydra} threads={threads} {params.subject}"
-        " 'apps.avatar={input.avatar}' 'apps.out={output.grid}' > {log} 2>&1"
+        "python -m avatarlab.apps.novel_views {params.args} threads={threads} > {log} 2>&1"
 
 
 rule reenact:
     input:
-        avatar=lambda wc: final_avatar(wc.subject),
+        avatar=lambda wc: PLAN.final_avatar(wc.subject),
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
         source=f"{RESULTS}/subjects/{{source}}/fit_rgb.npz",
-        code=module_sources("avatarlab.apps.reenact"),
     output:
         video=report(f"{RESULTS}/apps/{{subject}}/reenact_{{source}}.mp4", caption="../report/reenact.rst",
                      category="Applications", subcategory="{subject}"),
@@ -103,43 +147,36 @@ rule reenact:
     log:
         f"{LOGS}/apps/{{subject}}/reenact_{{source}}.log",
     params:
-        settings=lambda wc: settings("apps", modules=("avatarlab.apps.reenact",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/reenact_{wc.source}"),
-        subject=subject_args,
-        source_dir=lambda wc: subject_dir(wc.source),
+        **app_step("avatarlab.apps.reenact", "reenact", **{
+            "apps.out": lambda wc, i, o: o.video, "apps.source_dir": lambda wc, i, o: PLAN.subject_dir(wc.source)}),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.reenact {params.hydra} threads={threads} {params.subject}"
-        " 'apps.avatar={input.avatar}' 'apps.source_dir={params.source_dir}' 'apps.out={output.video}' > {log} 2>&1"
+        "python -m avatarlab.apps.reenact {params.args} threads={threads} > {log} 2>&1"
 
 
 rule telepresence:
     input:
-        avatar=lambda wc: final_avatar(wc.subject),
+        avatar=lambda wc: PLAN.final_avatar(wc.subject),
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        code=module_sources("avatarlab.apps.telepresence"),
     output:
         report=f"{RESULTS}/apps/{{subject}}/telepresence.json",
     log:
         f"{LOGS}/apps/{{subject}}/telepresence.log",
     params:
-        settings=lambda wc: settings("apps", modules=("avatarlab.apps.telepresence",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/apps/{wc.subject}/.hydra/telepresence"),
-        subject=subject_args,
+        **app_step("avatarlab.apps.telepresence", "telepresence", **{"apps.out": lambda wc, i, o: o.report}),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.telepresence {params.hydra} threads={threads} {params.subject}"
-        " 'apps.avatar={input.avatar}' 'apps.out={output.report}' > {log} 2>&1"
+        "python -m avatarlab.apps.telepresence {params.args} threads={threads} > {log} 2>&1"
 
 
 rule avatars_all:
     input:
-        avatar_outputs(),
+        PLAN.avatar_outputs(),

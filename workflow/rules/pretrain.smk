@@ -1,4 +1,21 @@
-# Pretraining of the parametric head model: the real image set, 2 alpha + 12 beta models, the renderer experiment.
+# Pretraining of the parametric head model: the real image set, 2 alpha + 12 beta models, the renderer experiment,
+# and each model's evaluation against its trivial baselines.
+
+
+def real_set(name=None):
+    """The preprocessed real image set that pretraining reads."""
+    folder = PLAN.subject_dir(name or PLAN.real_images["name"])
+    return {"fit": f"{folder}/fit_rgb.npz", "masks": f"{folder}/masks.npz", "frames": f"{folder}/frames.json"}
+
+
+def pretrain_step(name, strategy, extra, **values):
+    """The params of a pretraining run: name(wc) and strategy(wc) choose the model, extra(wc) more config choices."""
+    def fixed(wc, input, output):
+        return {"pretrain.name": name(wc), "pretrain.out_dir": str(Path(output.model).parent),
+                "pretrain.real_subject_dir": str(Path(input.fit).parent), **{k: v(input) for k, v in values.items()}}
+
+    return step_params("avatarlab.train.pretrain", extra=lambda wc: (f"strategy={strategy(wc)}", *extra(wc)),
+                       values=fixed, run_dir=lambda wc: f"{RESULTS}/pretrain/{name(wc)}/.hydra")
 
 
 rule init_tracking:
@@ -13,115 +30,133 @@ rule init_tracking:
 
 
 rule synthesize_portraits:
-    input:
-        code=module_sources("avatarlab.data.portraits"),
     output:
         images=directory(f"{RESULTS}/subjects/{{subject}}/input/images"),
         truth=f"{RESULTS}/subjects/{{subject}}/input/portraits_truth.npz",
     log:
         f"{LOGS}/subjects/{{subject}}/portraits.log",
     params:
-        settings=lambda wc: settings("seed", "head_model", "render", "subject", modules=("avatarlab.data.portraits",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
+        **step_params("avatarlab.data.portraits", values=lambda wc, input, output: {
+            "subject.name": wc.subject, "subject.images_out": output.images, "subject.truth_out": output.truth},
+            run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.data.portraits {params.hydra} threads={threads} subject.name={wildcards.subject}"
-        " 'subject.images_out={output.images}' 'subject.truth_out={output.truth}' > {log} 2>&1"
+        "python -m avatarlab.data.portraits {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_alpha:
     input:
-        **PRETRAIN_INPUTS,
+        **real_set(),
+        tracking=TRACKING_READY,
     output:
         model=f"{RESULTS}/pretrain/{{alpha}}/model.pt",
-        metrics=f"{RESULTS}/pretrain/{{alpha}}/metrics.json",
-        samples=report(f"{RESULTS}/pretrain/{{alpha}}/samples.png", caption="../report/pretrain.rst",
-                       category="Pretraining", subcategory="{alpha}"),
+        train=f"{RESULTS}/pretrain/{{alpha}}/train.json",
     log:
         f"{LOGS}/pretrain/{{alpha}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.alpha, modules=("avatarlab.train.pretrain",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.alpha}/.hydra"),
-        run=lambda wc: pretrain_args(wc, wc.alpha, wc.alpha, f"{RESULTS}/pretrain/{wc.alpha}"),
+        **pretrain_step(lambda wc: wc.alpha, lambda wc: wc.alpha, lambda wc: ()),
     threads: step_threads("train")
     resources:
         **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.hydra} threads={threads} {params.run} > {log} 2>&1"
+        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_beta:
     input:
-        **PRETRAIN_INPUTS,
+        **real_set(),
+        tracking=TRACKING_READY,
         parent=f"{RESULTS}/pretrain/{{alpha}}/model.pt",
     output:
         model=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/model.pt",
-        metrics=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/metrics.json",
-        samples=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/samples.png",
+        train=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/train.json",
     log:
         f"{LOGS}/pretrain/{{beta}}_from_{{alpha}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy=wc.beta, modules=("avatarlab.train.pretrain",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}/.hydra"),
-        run=lambda wc, input: pretrain_args(wc, f"{wc.beta}_from_{wc.alpha}", wc.beta,
-                                            f"{RESULTS}/pretrain/{wc.beta}_from_{wc.alpha}",
-                                            [f"pretrain.init_model={input.parent}"]),
+        **pretrain_step(lambda wc: f"{wc.beta}_from_{wc.alpha}", lambda wc: wc.beta, lambda wc: (),
+                        **{"pretrain.init_model": lambda i: i.parent}),
     threads: step_threads("train")
     resources:
         **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.hydra} threads={threads} {params.run} > {log} 2>&1"
+        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_run:
     input:
-        **PRETRAIN_INPUTS,
+        **real_set(),
+        tracking=TRACKING_READY,
     output:
-        metrics=f"{RESULTS}/pretrain/renderer_{{renderer}}/metrics.json",
+        model=f"{RESULTS}/pretrain/renderer_{{renderer}}/model.pt",
+        train=f"{RESULTS}/pretrain/renderer_{{renderer}}/train.json",
     log:
         f"{LOGS}/pretrain/renderer_{{renderer}}.log",
     params:
-        settings=lambda wc: settings(*TRAIN_SETTINGS, strategy="alpha1", modules=("avatarlab.train.pretrain",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/pretrain/renderer_{wc.renderer}/.hydra"),
-        run=lambda wc: pretrain_args(wc, f"renderer_{wc.renderer}", "alpha1", f"{RESULTS}/pretrain/renderer_{wc.renderer}",
-                                     [f"pretrain.renderer={wc.renderer}",
-                                      f"pretrain.iterations={scale_value('renderer_experiment_iterations')}",
-                                      f"scale.pretrain_image_size={scale_value('renderer_experiment_image_size')}",
-                                      f"scale.pretrain_feature_size={scale_value('renderer_experiment_feature_size')}"]),
+        **pretrain_step(lambda wc: f"renderer_{wc.renderer}", lambda wc: "alpha1",
+                        lambda wc: ("experiment=renderer", f"model.renderer={wc.renderer}")),
     threads: step_threads("train")
     resources:
         **step_resources("train"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.hydra} threads={threads} {params.run} > {log} 2>&1"
+        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+
+
+rule evaluate_pretrained:
+    """A pretrained model on held-out head-model renders beside its trivial baselines (mean colour, nearest
+    training sample); its own step, so a new metric re-scores without retraining."""
+    input:
+        model=f"{RESULTS}/pretrain/{{model}}/model.pt",
+        **real_set(),
+        tracking=TRACKING_READY,
+    output:
+        report=f"{RESULTS}/pretrain/{{model}}/eval.json",
+        samples=report(f"{RESULTS}/pretrain/{{model}}/eval_samples.png", caption="../report/pretrain.rst",
+                       category="Pretraining", subcategory="{model}"),
+    log:
+        f"{LOGS}/pretrain/{{model}}_eval.log",
+    params:
+        **step_params("avatarlab.evaluate.pretrained", values=lambda wc, input, output: {
+            "evaluate.model": input.model, "evaluate.out": output.report,
+            "evaluate.real_subject_dir": str(Path(input.fit).parent)},
+            run_dir=lambda wc: f"{RESULTS}/pretrain/{wc.model}/.hydra/eval"),
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_experiment:
     input:
-        runs=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/metrics.json", renderer=RENDERERS),
-        code=module_sources("avatarlab.evaluate.renderer_experiment"),
+        runs=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/train.json", renderer=PLAN.renderers),
+        evals=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/eval.json", renderer=PLAN.renderers),
     output:
         report=f"{RESULTS}/report/renderer_experiment.json",
         figure=report(f"{RESULTS}/report/renderer_experiment.png", caption="../report/renderer_experiment.rst",
                       category="Pretraining"),
     log:
         f"{LOGS}/report/renderer_experiment.log",
+    params:
+        code=STEPS.code("avatarlab.evaluate.renderer_experiment"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.renderer_experiment {input.runs} --out {output.report} --figure {output.figure}"
-        " > {log} 2>&1"
+        "python -m avatarlab.evaluate.renderer_experiment {input.runs:q} --out {output.report:q}"
+        " --figure {output.figure:q} > {log} 2>&1"
 
 
 rule pretrain_all:
     input:
-        pretrain_outputs(),
+        PLAN.pretrain_outputs(),

@@ -1,13 +1,12 @@
-# The report: tables and figures from every run's metrics (results/<scale>/report/).
+# The report: tables and figures from every run's train/eval files (results/<scale>/report/).
 
 
 rule report_tables:
     input:
-        preprocessing_outputs(),
-        pretrain_outputs(),
-        avatar_outputs(),
-        speech_outputs(),
-        code=module_sources("avatarlab.evaluate.report"),
+        PLAN.preprocessing_outputs(),
+        PLAN.pretrain_outputs(),
+        PLAN.avatar_outputs(),
+        PLAN.speech_outputs(),
     output:
         index=report(f"{RESULTS}/report/README.md", caption="../report/report.rst", category="Report"),
         summary=f"{RESULTS}/report/summary.json",
@@ -18,12 +17,11 @@ rule report_tables:
     log:
         f"{LOGS}/report/report.log",
     params:
-        settings=lambda wc: settings("report", modules=("avatarlab.evaluate.report",)),
-        hydra=lambda wc: hydra_args(f"{RESULTS}/report/.hydra"),
-        final=lambda wc: FINAL_RECIPE,
-        results=lambda wc, output: str(Path(output.summary).parent.parent),
+        **step_params("avatarlab.evaluate.report", values=lambda wc, input, output: {
+            "report.results_dir": str(Path(output.summary).parent.parent),
+            "report.out_dir": str(Path(output.summary).parent), "report.final_recipe": PLAN.final_recipe},
+            run_dir=lambda wc: f"{RESULTS}/report/.hydra"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.report {params.hydra} 'report.results_dir={params.results}'"
-        " 'report.out_dir={params.results}/report' 'report.final_recipe={params.final}' > {log} 2>&1"
+        "python -m avatarlab.evaluate.report {params.args} > {log} 2>&1"

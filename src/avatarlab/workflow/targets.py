@@ -1,0 +1,128 @@
+"""Which results a workflow run produces, from workflow/config.yaml (paths relative to the work directory).
+
+    results/<scale>/subjects/<subject>/...                 preprocessing (per subject; `portraits` = the image set)
+    results/<scale>/pretrain/<model>/{model.pt,train.json,eval.json}
+    results/<scale>/avatars/<subject>/<recipe>/<init>/{model.pt,train.json,eval.json}
+        recipe: final (every subject's avatar, from the final recipe's model) | base (the ablation fine-tunes:
+        the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>)
+    results/<scale>/apps/<subject>/...   results/<scale>/speech/...   results/<scale>/report/...
+"""
+from __future__ import annotations
+
+import glob
+import sys
+from pathlib import Path
+
+SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
+
+
+def available_subjects(subjects: dict, note=None) -> dict:
+    """Subjects marked `optional: true` whose path matches no file are left out (with a note), e.g. a real clip that
+    exists on one machine only."""
+    kept = {}
+    for name, spec in (subjects or {}).items():
+        if spec.get("optional") and spec.get("path") and not glob.glob(spec["path"]):
+            print(f"avatarlab: optional subject '{name}' skipped: nothing at {spec['path']}", file=note or sys.stderr)
+            continue
+        kept[name] = spec
+    return kept
+
+
+class Plan:
+    def __init__(self, config: dict):
+        self.scale = config["scale"]
+        self.results = f"results/{self.scale}"
+        self.logs = f"logs/{self.scale}"
+        self.subjects = available_subjects(config.get("subjects", {}))
+        self.real_images = config["real_images"]
+        self.all_subjects = {**self.subjects, self.real_images["name"]: self.real_images}
+        self.synthetic = [n for n, s in self.subjects.items() if s["source"] == "synthetic"]
+        self.image_sets = [n for n, s in self.all_subjects.items() if s["source"] in ("portraits", "images")]
+        self.alphas, self.betas, self.renderers = config["alphas"], config["betas"], config["renderers"]
+        self.pretrained = self.alphas + [f"{b}_from_{a}" for b in self.betas for a in self.alphas]
+        self.final_recipe = config["final_recipe"]
+        self.ablation_subjects = [s for s in config.get("ablation_subjects", []) if s in self.subjects]
+        self.interp_subjects = [s for s in config.get("interp_subjects", []) if s in self.subjects]
+        self.transfers = [(t["avatar"], t["source"]) for t in config.get("transfers", [])
+                          if t["avatar"] in self.subjects and t["source"] in self.subjects]
+        self.speech_models = sorted(p.stem for p in SPEECH_MODEL_DIR.glob("*.yaml"))
+        self.speech_subjects = [s for s in config.get("speech_subjects", []) if s in self.subjects]
+        self.grid_clips = sorted(glob.glob(config["grid_clips"])) if config.get("grid_clips") else []
+
+    # --- subjects -------------------------------------------------------------------------------------------------
+    def subject_dir(self, subject: str) -> str:
+        return f"{self.results}/subjects/{subject}"
+
+    def subject_inputs(self, subject: str) -> list[str]:
+        """Files the frames of a subject come from: its synthetic video, or the user's paths (globs allowed)."""
+        spec = self.all_subjects[subject]
+        if spec["source"] == "synthetic":
+            return [f"{self.subject_dir(subject)}/input/video.mp4"]
+        if spec["source"] == "portraits":
+            return [f"{self.subject_dir(subject)}/input/images"]
+        return sorted(glob.glob(spec["path"])) or [spec["path"]]
+
+    def subject_truth(self, subject: str) -> list[str]:
+        """The ground truth of a synthetic subject (an input of every step that reports errors against it)."""
+        return [f"{self.subject_dir(subject)}/input/truth.npz"] if subject in self.synthetic else []
+
+    def subject_values(self, subject: str) -> dict:
+        """Per-subject settings every preprocessing and avatar step gets (name, folder, truth, the subject's own
+        `fps`, `max_frames` and `test_clips` from workflow/config.yaml)."""
+        spec = self.all_subjects[subject]
+        values = {"subject.name": subject, "preprocess.subject_dir": self.subject_dir(subject)}
+        truth = self.subject_truth(subject)
+        if truth:
+            values["preprocess.truth"] = truth[0]
+        if subject in self.image_sets:
+            values["fit_rgb.mode"] = "images"
+        for key, target in (("fps", "preprocess.fps"), ("max_frames", "preprocess.max_frames")):
+            if spec.get(key) is not None:
+                values[target] = spec[key]
+        return values
+
+    def test_clips(self, subject: str) -> int:
+        return int(self.all_subjects[subject].get("test_clips", 0))
+
+    # --- results --------------------------------------------------------------------------------------------------
+    def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
+        return f"{self.results}/avatars/{subject}/{recipe}/{init}"
+
+    def final_avatar(self, subject: str) -> str:
+        return f"{self.avatar_dir(subject, 'final', self.final_recipe)}/model.pt"
+
+    def preprocessing_outputs(self) -> list[str]:
+        outputs = [f"{self.results}/headmodel/render_grid.png", f"{self.results}/headmodel/dlib_check.json"]
+        for subject in self.subjects:
+            outputs += [f"{self.subject_dir(subject)}/fit_rgb.json", f"{self.subject_dir(subject)}/interp.json"]
+        outputs += [f"{self.subject_dir(s)}/fit_rgbd.json" for s in self.synthetic]
+        return outputs
+
+    def pretrain_outputs(self) -> list[str]:
+        return ([f"{self.results}/pretrain/{name}/eval.json" for name in self.pretrained]
+                + [f"{self.results}/report/renderer_experiment.json"])
+
+    def avatar_outputs(self) -> list[str]:
+        """Every subject's final-recipe avatar and its applications; the 14 base fine-tunes of the ablation subjects;
+        the interpolation variants (base recipe; variant a is the plain base avatar of the same initialisation)."""
+        outputs = []
+        for subject in self.subjects:
+            outputs.append(f"{self.avatar_dir(subject, 'final', self.final_recipe)}/eval.json")
+            outputs += [f"{self.results}/apps/{subject}/novel_views.png",
+                        f"{self.results}/apps/{subject}/telepresence.json"]
+        for subject in self.ablation_subjects:
+            outputs += [f"{self.avatar_dir(subject, 'base', init)}/eval.json" for init in self.pretrained]
+        for subject in self.interp_subjects:
+            outputs += [f"{self.avatar_dir(subject, 'base', self.final_recipe + v)}/eval.json"
+                        for v in ("", "_framesb", "_framesc")]
+        outputs += [f"{self.results}/apps/{a}/reenact_{s}.mp4" for a, s in self.transfers]
+        return sorted(set(outputs))
+
+    def speech_outputs(self) -> list[str]:
+        outputs = [f"{self.results}/speech/{m}/metrics.json" for m in self.speech_models]
+        outputs += [f"{self.results}/speech/grid_eval.json"] if self.grid_clips else []
+        return outputs + [f"{self.results}/speech/speak_{s}.mp4" for s in self.speech_subjects]
+
+    def final_outputs(self) -> list[str]:
+        return (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
+                + self.speech_outputs() + [f"{self.results}/report/README.md"])

@@ -1,0 +1,127 @@
+"""The workflow's machinery as plain Python: what each step reads, its settings, code digest and command line."""
+import shlex
+import textwrap
+
+import pytest
+import yaml
+from hydra import compose, initialize_config_dir
+
+from avatarlab.config import CONF_DIR
+from avatarlab.provenance import code_digest, imported_modules, source_digest
+from avatarlab.workflow.steps import Steps, declared_reads, hydra_string, hydra_value
+from avatarlab.workflow.targets import Plan
+from helpers import REPO
+
+HOSTILE = ["I don't know", 'say "hi", now', "a;b|c $(touch PWNED) `touch PWNED`", "x'|touch PWNED|'.mp4",
+           "${oops}", "back\\slash", "end\\", "/tmp/obama's clip, 2.mp4", "[a,b]", "a=b", "ünïcode"]
+
+
+@pytest.fixture(scope="module")
+def steps():
+    return Steps(CONF_DIR, "smoke", "procedural", ["speech.lr=0.01", "scale.crop_size=96"])
+
+
+@pytest.mark.parametrize("text", HOSTILE)
+def test_values_reach_hydra_verbatim(text):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"speech.say={hydra_string(text)}"])
+    assert cfg.speech.say == text
+
+
+@pytest.mark.parametrize("text", HOSTILE)
+def test_values_reach_the_shell_as_one_word(text, steps):
+    args = steps.args("avatarlab.speech.animate", values={"speech.say": text, "apps.out": f"out/{text}.mp4"})
+    words = shlex.split(args)
+    assert f"speech.say={hydra_string(text)}" in words and f"apps.out={hydra_string(f'out/{text}.mp4')}" in words
+
+
+def test_numbers_lists_and_none_keep_their_type():
+    assert (hydra_value(3), hydra_value(0.5), hydra_value(True), hydra_value(None)) == ("3", "0.5", "true", "null")
+    assert hydra_value(["a b", "c,d"]) == '["a b","c,d"]'
+
+
+def test_every_entry_module_declares_what_it_reads():
+    modules = ["avatarlab.train.pretrain", "avatarlab.train.finetune", "avatarlab.evaluate.avatar",
+               "avatarlab.evaluate.pretrained", "avatarlab.preprocess.fit_rgb", "avatarlab.speech.train",
+               "avatarlab.evaluate.report", "avatarlab.apps.novel_views"]
+    for module in modules:
+        reads = declared_reads(module)
+        assert reads and "scale" not in reads, f"{module}: sizes reach code through its sections, not cfg.scale"
+    assert declared_reads("avatarlab.train.pretrain") == ("seed", "amp", "head_model", "render", "model",
+                                                         "synthetic", "strategy", "pretrain", "tracking")
+
+
+def test_settings_are_the_resolved_sections_a_step_reads(steps):
+    settings = yaml.safe_load(steps.settings("avatarlab.train.pretrain", "strategy=beta4"))
+    assert set(settings) == set(declared_reads("avatarlab.train.pretrain"))
+    assert settings["strategy"]["name"] == "beta4" and settings["model"]["image_size"] == 64  # resolved from scale
+    assert settings != yaml.safe_load(steps.settings("avatarlab.train.pretrain", "strategy=beta5"))
+
+
+def test_a_user_override_reaches_only_the_steps_that_read_it(steps):
+    speech = steps.args("avatarlab.speech.train")
+    assert "speech.lr=0.01" in shlex.split(speech)
+    assert "speech.lr=0.01" not in shlex.split(steps.args("avatarlab.preprocess.fit_rgb"))
+    assert "speech.lr=0.01" not in shlex.split(steps.args("avatarlab.train.pretrain", "strategy=alpha1"))
+    # a scale key reaches a step when one of the sections it reads refers to it
+    assert "scale.crop_size=96" in shlex.split(steps.args("avatarlab.preprocess.frames"))
+    assert "scale.crop_size=96" not in shlex.split(steps.args("avatarlab.speech.train"))
+    assert yaml.safe_load(steps.settings("avatarlab.preprocess.frames"))["preprocess"]["image_size"] == 96
+
+
+def test_code_digest_ignores_docstrings_and_comments_but_not_code(tmp_path):
+    pkg = tmp_path / "avatarlab"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "helper.py").write_text('"""Helper."""\n\ndef f(x):\n    """Doc."""\n    return x + 1  # one\n')
+    (pkg / "entry.py").write_text("from avatarlab.helper import f\n\nprint(f(1))\n")
+    before = code_digest("avatarlab.entry", src=tmp_path)
+    assert imported_modules("avatarlab.entry", src=tmp_path) == ["avatarlab", "avatarlab.entry", "avatarlab.helper"]
+    (pkg / "helper.py").write_text('"""Helper, reworded."""\n\n\ndef f(x):\n    """Other doc."""\n'
+                                   '    # a comment\n    return x + 1  # two\n')
+    assert code_digest("avatarlab.entry", src=tmp_path) == before
+    (pkg / "helper.py").write_text('"""Helper."""\n\ndef f(x):\n    return x + 2\n')
+    assert code_digest("avatarlab.entry", src=tmp_path) != before
+
+
+def test_docstring_edits_in_infrastructure_change_no_digest():
+    io = REPO / "src" / "avatarlab" / "io.py"
+    text = io.read_text()
+    edited = text.replace('"""Atomic file writes', '"""Atomic file writes (reworded)', 1)
+    assert edited != text
+    assert source_digest(io) == _digest_of(edited, io.name)
+
+
+def _digest_of(text, name):
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / name
+        path.write_text(text)
+        return source_digest(path)
+
+
+def test_plan_lists_the_dissertations_experiments():
+    config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
+    config.update(scale="smoke", subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
+    plan = Plan(config)
+    assert len(plan.pretrained) == 14 and plan.speech_models == ["lstm_noreg", "lstm_reg", "window"]
+    outputs = plan.avatar_outputs()
+    assert sum("/base/" in o and o.endswith("eval.json") and "_frames" not in o for o in outputs) == 14 + 1
+    assert all(f"avatars/{s}/final/beta6_from_alpha2/eval.json" in " ".join(outputs) for s in plan.subjects)
+    assert plan.subject_values("portraits")["fit_rgb.mode"] == "images"
+
+
+def test_optional_subject_without_files_is_skipped_with_a_note(capsys):
+    plan = Plan({"scale": "smoke", "subjects": {"gone": {"source": "video", "path": "/nonexistent/*.mp4",
+                                                         "optional": True}},
+                 "real_images": {"name": "portraits", "source": "portraits"}, "alphas": [], "betas": [],
+                 "renderers": [], "final_recipe": "x"})
+    assert "gone" not in plan.subjects and "optional subject 'gone' skipped" in capsys.readouterr().err
+
+
+def test_common_smk_only_wires(tmp_path):
+    text = (REPO / "workflow" / "rules" / "common.smk").read_text()
+    assert "import re" not in text and "ast." not in text, "no source scanning in the Snakefile"
+    assert len(text.splitlines()) < 80, textwrap.shorten(text, 200)
