@@ -7,7 +7,7 @@ CORES ?= 2
 SCALE ?= tiny
 PORT ?= 5000
 
-.PHONY: main test setup system browser cluster dashboard clean-results
+.PHONY: main test test-fast lint setup system browser cluster dashboard clean-results
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,8 +43,18 @@ main: setup system
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html
 
-test: setup system browser cluster
+test: setup system browser cluster lint
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest
+
+# the unit tests only (about a minute): what to run after each edit
+test-fast: setup
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest -m "not slow"
+
+# ruff (pyflakes, syntax, import order) and Snakemake's own linter
+lint: setup
+	$(BIN)/ruff check src tests benchmarks
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --lint >/dev/null 2>lint.log || { cat lint.log; rm -f lint.log; exit 1; }
+	@rm -f lint.log
 
 dashboard: setup
 	$(BIN)/python -m avatarlab.dashboard --results results --port $(PORT)

@@ -24,6 +24,7 @@ if os.environ.get("MLFLOW_TRACKING_URI"):
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/helpers.smk"
 include: "workflow/rules/headmodel.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/pretrain.smk"

@@ -3,16 +3,24 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import fake_real_set, fake_video_subject, step_cfg
+from helpers.subjects import tiny_model_overrides
 
 from avatarlab.data.splits import mouth_open_subset, subject_split
 from avatarlab.entry import InputError
 from avatarlab.evaluate import baselines
-from avatarlab.evaluate.metrics import (LPIPS, STLPIPS, face_metrics, identity_similarity, load_backbone,
-                                        lpips_metric, psnr, ssim)
+from avatarlab.evaluate.metrics import (
+    LPIPS,
+    STLPIPS,
+    face_metrics,
+    identity_similarity,
+    load_backbone,
+    lpips_metric,
+    psnr,
+    ssim,
+)
 from avatarlab.evaluate.scoring import gains
 from avatarlab.safe_load import InputFileError
-from helpers import fake_real_set, fake_video_subject, step_cfg
-from helpers.subjects import tiny_model_overrides
 
 
 def test_split_keeps_the_last_frames_for_testing():

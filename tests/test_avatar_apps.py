@@ -7,9 +7,9 @@ import torch
 
 from avatarlab.apps.avatar import orbit
 from avatarlab.apps.telepresence import payload
+from avatarlab.data.real_images import replace_with_interpolated, z_augment
 from avatarlab.evaluate.report import PUBLISHED_TABLE2, Table, comparison_table, final_avatar_table, interp_table
 from avatarlab.render.camera import Camera
-from avatarlab.data.real_images import replace_with_interpolated, z_augment
 
 
 def test_recreated_frames_take_the_interpolated_image_and_the_neighbours_mean(tmp_path):

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from helpers import REPO, run_snakemake, workflow_env
 
 SCRIPT = REPO / "cluster" / "local_cluster.sh"

@@ -1,12 +1,13 @@
 import itertools
 
 import pytest
+from helpers import compose_config
 from omegaconf import OmegaConf
 
-from avatarlab.cli import COMMANDS, main as cli_main
-from avatarlab.headmodel import HeadModelFileError, load_head_model_data
+from avatarlab.cli import COMMANDS
+from avatarlab.cli import main as cli_main
 from avatarlab.config import CONF_DIR
-from helpers import compose_config
+from avatarlab.headmodel import HeadModelFileError, load_head_model_data
 
 SCALES = sorted(p.stem for p in (CONF_DIR / "scale").glob("*.yaml"))
 HEAD_MODELS = sorted(p.stem for p in (CONF_DIR / "head_model").glob("*.yaml"))

@@ -2,8 +2,8 @@
 avatar runs, looked at in headless Chromium - the runs table and the metrics of the compared runs."""
 import json
 import os
-import signal
 import shutil
+import signal
 import socket
 import subprocess
 import sys

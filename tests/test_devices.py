@@ -10,7 +10,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-
 from helpers import compose_config, interp_config
 
 META = torch.device("meta")
@@ -36,10 +35,10 @@ def test_head_model_and_fit_loss_stay_on_the_device(head_model):
 
 def test_networks_stay_on_the_device():
     from avatarlab.model.cnerf import CNeRFConfig, camera_rays, ray_samples, sphere_interval, volume_render_features
+    from avatarlab.model.head_nerf import HeadNeRFModel
     from avatarlab.preprocess.interp.network import XVFILite
     from avatarlab.render.camera import orbit_camera
     from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP
-    from avatarlab.model.head_nerf import HeadNeRFModel
 
     xvfi = XVFILite(8, 2).to(META)
     frames = torch.rand(2, 3, 16, 16, device=META)

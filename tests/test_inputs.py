@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers import compose_config
 
 from avatarlab.errors import ConfigError, InputError, InputFileError
 from avatarlab.preprocess.frames import read_video
 from avatarlab.safe_load import load_arrays, load_tensors
 from avatarlab.schema import problems, validate
-from helpers import compose_config
 
 
 class Payload:

@@ -1,17 +1,19 @@
 import numpy as np
 import pytest
 import torch
+from helpers import interp_config
 
+from avatarlab.geometry import procrustes_error_mm
 from avatarlab.headmodel import HeadModel
-from avatarlab.preprocess.fit_rgb import FitWeights, choose_keyframes, procrustes_error_mm, rgb_fit_loss
-from avatarlab.preprocess.fit_rgbd import (depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks)
-from avatarlab.preprocess.frames import InputError, crop_and_resize, crop_points, expand_inputs, input_kind, read_video
+from avatarlab.preprocess.crop import crop_and_resize, crop_points
+from avatarlab.preprocess.fit_rgb import FitWeights, choose_keyframes, rgb_fit_loss
+from avatarlab.preprocess.fit_rgbd import depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks
+from avatarlab.preprocess.frames import InputError, expand_inputs, input_kind, read_video
 from avatarlab.preprocess.interp.network import XVFILite, backward_warp
 from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal_vote
 from avatarlab.render import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.mesh_renderer import vertex_normals
-from helpers import interp_config
 
 
 def test_bad_inputs_are_named(tmp_path):

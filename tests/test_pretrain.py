@@ -1,14 +1,22 @@
 import numpy as np
 import pytest
 import torch
+from helpers import compose_config, fake_real_set, step_cfg
 
 from avatarlab.data.schedule import scaled_schedule, synthetic_probability
-from avatarlab.model.cnerf import (CNeRF, CNeRFConfig, camera_rays, head_bounds, positional_encoding, ray_samples,
-                                   sphere_interval, volume_render_features)
+from avatarlab.model.cnerf import (
+    CNeRF,
+    CNeRFConfig,
+    camera_rays,
+    head_bounds,
+    positional_encoding,
+    ray_samples,
+    sphere_interval,
+    volume_render_features,
+)
 from avatarlab.model.losses import RandomConvFeatures, VGGFeatures, head_model_loss, perceptual_network
 from avatarlab.model.renderer2d import NeuralRenderer2D
 from avatarlab.render import orbit_camera
-from helpers import compose_config, fake_real_set, step_cfg
 
 STRATEGIES = ["alpha1", "alpha2"] + [f"beta{i}" for i in range(1, 7)]
 # (M, N, p_min, p_max, z_aug, init) from the dissertation (DESIGN.md "Synthetic data and strategies")

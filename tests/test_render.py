@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from avatarlab.headmodel.texture import default_lighting
 from avatarlab.render import orbit_camera, rasterize
 from avatarlab.render.camera import Camera, intrinsics, scale_intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
+from avatarlab.render.lighting import default_lighting
 
 
 def inside_brute_force(tri, h, w):

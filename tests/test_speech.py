@@ -4,14 +4,20 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from helpers import SHARED_DATA
 
 from avatarlab.speech.features import FeatureSpec, frame_features, read_wav, windows, write_wav
+from avatarlab.speech.lip_metrics import align_to, lip_error_percent
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
-from avatarlab.speech.train import align_to, lip_error_percent
-from avatarlab.speech.visemes import NAMES, PHONEMES, mouth_features, normalise_phoneme, phoneme_to_viseme_matrix, \
-    viseme_basis, viseme_of
-
-from helpers import SHARED_DATA
+from avatarlab.speech.visemes import (
+    NAMES,
+    PHONEMES,
+    mouth_features,
+    normalise_phoneme,
+    phoneme_to_viseme_matrix,
+    viseme_basis,
+    viseme_of,
+)
 
 needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None,
                                   reason="Debian's espeak-ng is not installed (`make test` installs it where it can)")

@@ -12,10 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
-
 from helpers import REPO, SHARED_DATA, run_snakemake, workflow_env
 from helpers.workflow import jobs_planned
+from PIL import Image
 
 PRETRAINED = ["alpha1", "alpha2"] + [f"beta{i}_from_{a}" for i in range(1, 7) for a in ("alpha1", "alpha2")]
 
@@ -75,9 +74,10 @@ def test_preprocessing_stage(smoke_run):
 def test_fitted_frames_lie_inside_the_models_ray_interval(smoke_run):
     """The RGB fit folds theta's root into the camera, and every fitted head of the subjects lies inside the
     bounding sphere the head model samples its rays in."""
+    from helpers import compose_config
+
     from avatarlab.headmodel import load_head_model
     from avatarlab.model.head_nerf import load_model_file
-    from helpers import compose_config
 
     net, _ = load_model_file(smoke_run / "smoke" / "pretrain" / "beta6_from_alpha2" / "model.pt")
     centre, radius = net.nerf.bound_center, float(net.nerf.bound_radius)
@@ -337,7 +337,8 @@ def test_grid_clip_frames_and_landmarks():
     clip = SHARED_DATA / "grid" / "bbaf2n.mpg"
     if not clip.is_file():
         pytest.skip(f"{clip} is absent")
-    from avatarlab.preprocess.frames import crop_and_resize, load_frames, stable_head_crop
+    from avatarlab.preprocess.crop import crop_and_resize
+    from avatarlab.preprocess.frames import load_frames, stable_head_crop
     from avatarlab.preprocess.landmarks import detect_landmarks
 
     frames, sources, fps, kinds = load_frames([clip], None, 20)

@@ -4,13 +4,13 @@ import textwrap
 
 import pytest
 import yaml
+from helpers import REPO
 from hydra import compose, initialize_config_dir
 
 from avatarlab.config import CONF_DIR
 from avatarlab.provenance import code_digest, imported_modules, source_digest
 from avatarlab.workflow.steps import Steps, declared_reads, hydra_string, hydra_value
 from avatarlab.workflow.targets import Plan
-from helpers import REPO
 
 HOSTILE = ["I don't know", 'say "hi", now', "a;b|c $(touch PWNED) `touch PWNED`", "x'|touch PWNED|'.mp4",
            "${oops}", "back\\slash", "end\\", "/tmp/obama's clip, 2.mp4", "[a,b]", "a=b", "ünïcode"]

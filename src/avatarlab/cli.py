@@ -5,8 +5,8 @@ import runpy
 import sys
 
 COMMANDS = {
-    "render-demo": ("avatarlab.headmodel.render_demo", "PNG grid sweeping every head-model parameter"),
-    "dlib-check": ("avatarlab.headmodel.dlib_check", "dlib detection rate and NME on renders of the head model"),
+    "render-demo": ("avatarlab.evaluate.head_model_demo", "PNG grid sweeping every head-model parameter"),
+    "dlib-check": ("avatarlab.evaluate.dlib_check", "dlib detection rate and NME on renders of the head model"),
 }
 
 

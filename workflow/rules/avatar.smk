@@ -2,13 +2,6 @@
 # interpolation variants for the ablation subjects), their evaluation, and the applications.
 
 
-def finetune_values(subject, init, model, variant="a"):
-    """The values naming an avatar: its subject, initialisation, folder (that of its model.pt) and frames variant."""
-    return {**PLAN.subject_values(subject), "finetune.subject": subject, "finetune.subject_dir": PLAN.subject_dir(subject),
-            "finetune.init_name": init, "finetune.test_clips": PLAN.test_clips(subject),
-            "finetune.frames_variant": variant, "finetune.out_dir": str(Path(model).parent)}
-
-
 rule finetune_avatar:
     input:
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
@@ -65,12 +58,6 @@ rule finetune_interp_variant:
         "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
-def avatar_variant(wc):
-    """init and frames variant of an avatar folder name (<init> or <init>_frames<b|c>)."""
-    name = wc.avatar
-    return (name[:-8], name[-1]) if name[-8:-1] == "_frames" else (name, "a")
-
-
 rule evaluate_avatar:
     """An avatar on its test frames beside the mean, last and nearest training frame; its own step, so a new metric
     re-scores without retraining."""
@@ -103,14 +90,6 @@ rule evaluate_avatar:
         "../envs/avatarlab.yaml"
     shell:
         "python -m avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
-
-
-def app_step(module, name, **values):
-    """The params of an application of a subject's final avatar (a value may be a function of wc, input, output)."""
-    return step_params(module, values=lambda wc, input, output: {
-        **PLAN.subject_values(wc.subject), "apps.avatar": input.avatar, "apps.subject_dir": PLAN.subject_dir(wc.subject),
-        **{k: v(wc, input, output) for k, v in values.items()}},
-        run_dir=lambda wc: f"{RESULTS}/apps/{wc.subject}/.hydra/{name}")
 
 
 rule novel_views:

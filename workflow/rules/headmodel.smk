@@ -8,7 +8,7 @@ rule render_demo:
     log:
         f"{LOGS}/headmodel/render_demo.log",
     params:
-        **step_params("avatarlab.headmodel.render_demo", values=lambda wc, input, output: {"demo.out": output.grid},
+        **step_params("avatarlab.evaluate.head_model_demo", values=lambda wc, input, output: {"demo.out": output.grid},
                       run_dir=lambda wc: f"{RESULTS}/headmodel/.hydra/render_demo"),
     threads: step_threads("light")
     resources:
@@ -16,7 +16,7 @@ rule render_demo:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.headmodel.render_demo {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.evaluate.head_model_demo {params.args} threads={threads} > {log} 2>&1"
 
 
 rule dlib_check:
@@ -27,7 +27,7 @@ rule dlib_check:
     log:
         f"{LOGS}/headmodel/dlib_check.log",
     params:
-        **step_params("avatarlab.headmodel.dlib_check",
+        **step_params("avatarlab.evaluate.dlib_check",
                       values=lambda wc, input, output: {"dlib_check.out": output.report,
                                                         "dlib_check.overlay": output.overlay},
                       run_dir=lambda wc: f"{RESULTS}/headmodel/.hydra/dlib_check"),
@@ -37,4 +37,4 @@ rule dlib_check:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.headmodel.dlib_check {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.evaluate.dlib_check {params.args} threads={threads} > {log} 2>&1"

@@ -1,15 +1,6 @@
 # Per-subject preprocessing: frames -> landmarks -> masks -> FLAME fits (RGB, RGBD) and frame interpolation.
 
 
-def subject_step(module, name, **values):
-    """The params of a per-subject preprocessing step: the subject's own values plus the rule's (a value may be a
-    function of the job's input and output)."""
-    return step_params(module, values=lambda wc, input, output: {
-        **PLAN.subject_values(wc.subject),
-        **{k: v(input, output) if callable(v) else v for k, v in values.items()}},
-        run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/{name}")
-
-
 rule synthesize_subject:
     output:
         video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",

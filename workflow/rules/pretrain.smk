@@ -2,22 +2,6 @@
 # and each model's evaluation against its trivial baselines.
 
 
-def real_set(name=None):
-    """The preprocessed real image set that pretraining reads."""
-    folder = PLAN.subject_dir(name or PLAN.real_images["name"])
-    return {"fit": f"{folder}/fit_rgb.npz", "masks": f"{folder}/masks.npz", "frames": f"{folder}/frames.json"}
-
-
-def pretrain_step(name, strategy, extra, **values):
-    """The params of a pretraining run: name(wc) and strategy(wc) choose the model, extra(wc) more config choices."""
-    def fixed(wc, input, output):
-        return {"pretrain.name": name(wc), "pretrain.out_dir": str(Path(output.model).parent),
-                "pretrain.real_subject_dir": str(Path(input.fit).parent), **{k: v(input) for k, v in values.items()}}
-
-    return step_params("avatarlab.train.pretrain", extra=lambda wc: (f"strategy={strategy(wc)}", *extra(wc)),
-                       values=fixed, run_dir=lambda wc: f"{RESULTS}/pretrain/{name(wc)}/.hydra")
-
-
 rule init_tracking:
     output:
         TRACKING_READY,

@@ -1,13 +1,6 @@
 # Speech-driven animation (seeds 000 and 001): corpus -> models (conf/speech_model) -> table rows -> audio -> avatar.
 
 
-def speech_audio():
-    """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
-    if config.get("speech_wav"):
-        return {"speech.wav": config["speech_wav"]}
-    return {"speech.say": config.get("speech_text", "bin blue at f two now")}
-
-
 rule speech_corpus:
     output:
         corpus=f"{RESULTS}/speech/corpus.npz",

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from avatarlab.apps.avatar import load_fit, open_avatar, select, to_uint8
-from avatarlab.data.subject_files import load_frame_stack
+from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import write_json, write_video
 
@@ -38,7 +38,7 @@ def main(cfg, device) -> None:
     apps = cfg.apps
     avatar, target = open_avatar(apps, device)
     source = load_fit(apps.source_dir, avatar.image_size)
-    frames, meta = load_frame_stack(Path(apps.source_dir))
+    frames, meta = SubjectDir(Path(apps.source_dir)).frames(), SubjectDir(Path(apps.source_dir)).frames_meta()
     idx = torch.nonzero(source["fitted"]).flatten()[: int(apps.max_frames)]
     if len(idx) == 0:
         raise ValueError(f"{apps.source_dir}/fit_rgb.npz: no fitted frame to transfer")

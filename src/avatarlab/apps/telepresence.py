@@ -17,7 +17,7 @@ import torch
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from avatarlab.apps.avatar import open_avatar, select
-from avatarlab.data.subject_files import load_frame_stack
+from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import write_json
 
@@ -39,7 +39,7 @@ def jpeg_bytes(frames: np.ndarray, quality: int) -> list[int]:
 def main(cfg, device) -> None:
     apps = cfg.apps
     avatar, fit = open_avatar(apps, device)
-    frames, _ = load_frame_stack(Path(apps.subject_dir))
+    frames = SubjectDir(Path(apps.subject_dir)).frames()
     idx = torch.nonzero(fit["fitted"]).flatten()[: int(apps.max_frames)]
     params, camera = select(fit, idx)
     message = payload(params, camera.R, camera.t)

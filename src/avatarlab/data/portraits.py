@@ -20,10 +20,10 @@ from avatarlab.config import CPU
 from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.headmodel.flame import clip_coefficients
-from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import atomic_path
 from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
+from avatarlab.render.lighting import default_lighting
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'head_model', 'subject')  # the config sections this step reads (avatarlab/entry.py)

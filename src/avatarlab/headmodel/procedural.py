@@ -142,7 +142,7 @@ def eye_opening(x, y, side: float):
 # ---------------------------------------------------------------- 68 landmarks in frontal (X, Y), dlib order
 # Image-left (subject's right, -X) first, as in the iBUG 300-W / dlib convention. The table was designed from the
 # feature positions above, then calibrated once to the median response of dlib's 68-point predictor on frontal
-# renders of random heads (seed 1, 60 renders), symmetrised, and frozen; the check in avatarlab.headmodel.dlib_check
+# renders of random heads (seed 1, 60 renders), symmetrised, and frozen; the check in avatarlab.evaluate.dlib_check
 # measures it on other renders. Mouth points stay on their side of the slit (the embedding needs a triangle there).
 _LANDMARK_XY = np.array([
     [-0.0741, 0.0340], [-0.0727, 0.0143], [-0.0702, -0.0052], [-0.0662, -0.0240],

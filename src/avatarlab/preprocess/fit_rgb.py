@@ -22,14 +22,13 @@ from omegaconf import DictConfig
 from avatarlab.config import CPU
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
+from avatarlab.geometry import procrustes_error_mm
 from avatarlab.headmodel import HeadModel, load_head_model
 from avatarlab.headmodel.flame import rodrigues
-from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import write_json, write_png
-from avatarlab.preprocess.frames import load_frame_stack
-from avatarlab.preprocess.track_landmarks import load_landmarks
 from avatarlab.render.camera import Camera, intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
+from avatarlab.render.lighting import default_lighting
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess', 'fit_rgb', 'head_model', 'render')  # the config sections this step reads (avatarlab/entry.py)
@@ -290,15 +289,6 @@ def fold_root_into_camera(model: HeadModel, shape: torch.Tensor, pose: torch.Ten
     return pose, R_new, t_new
 
 
-def procrustes_error_mm(a: np.ndarray, b: np.ndarray) -> float:
-    """Mean vertex distance (mm) after the similarity transform that best maps a onto b (Umeyama)."""
-    ma, mb = a.mean(0), b.mean(0)
-    A, B = a - ma, b - mb
-    U, S, Vt = np.linalg.svd(B.T @ A)
-    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    s = (S * np.diag(D)).sum() / (A**2).sum()
-    return float(1000 * np.linalg.norm(s * A @ R.T - B, axis=1).mean())
 
 
 @torch.no_grad()
@@ -339,8 +329,9 @@ def overlay_sheet(frames: np.ndarray, rendered: np.ndarray, landmarks: np.ndarra
 @entry_point(READS)
 def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
-    frames, meta = load_frame_stack(subject_dir)
-    landmarks, found = load_landmarks(subject_dir)
+    subject = SubjectDir(subject_dir)
+    frames = subject.frames()
+    landmarks, found = subject.landmarks()
     with np.load(subject_dir / "masks.npz") as mk:
         masks = mk["masks"]
     model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks,

@@ -20,12 +20,12 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from scipy.spatial import cKDTree
 
 from avatarlab.entry import entry_point
+from avatarlab.geometry import procrustes_error_mm, similarity_transform
 from avatarlab.headmodel import HeadModel, load_head_model
-from avatarlab.headmodel.texture import default_lighting
 from avatarlab.io import write_json
-from avatarlab.preprocess.fit_rgb import procrustes_error_mm
 from avatarlab.render.camera import Camera
 from avatarlab.render.head_renderer import HeadRenderer
+from avatarlab.render.lighting import default_lighting
 from avatarlab.render.mesh_renderer import vertex_normals
 from avatarlab.safe_load import InputFileError, load_arrays
 
@@ -70,12 +70,7 @@ def kabsch_init(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray):
     p = model.zeros(1)
     with torch.no_grad():
         src = model(p["shape"], p["expression"], p["pose"]).landmarks3d[0].cpu().numpy()[valid].astype(np.float64)
-    dst = lmk3d[valid]
-    ms, md = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((dst - md).T @ (src - ms))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    t = md - R @ ms
+    _, R, t = similarity_transform(src, lmk3d[valid], with_scale=False)
     from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
     rot = rotation_matrix_to_axis_angle(torch.from_numpy(R).float()[None])[0]
@@ -102,16 +97,14 @@ def robust_landmarks(model: HeadModel, lmk3d: np.ndarray, valid: np.ndarray, dep
     return rot, trans, valid
 
 
-def rmse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return ((a - b) ** 2).sum(-1).mean().sqrt()
+def landmark_rmse(lmk_pred: torch.Tensor, lmk_gt: torch.Tensor) -> torch.Tensor:
+    """Eq. (2), block 1 of the RGBD fit: RMSE between the predicted and the depth-lifted 3D landmarks."""
+    return ((lmk_pred - lmk_gt) ** 2).sum(-1).mean().sqrt()
 
 
-def rgbd_block_losses(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights) -> dict[str, torch.Tensor]:
-    """Eqs. (2)-(4) for one frame: landmark RMSE, cloud-to-vertex chamfer, and point-to-mesh (point-to-plane).
-
-    lmk (L,3), verts_cam/normals_cam (V,3) camera frame, cloud (P,3). Nearest vertices are found without gradients,
-    with a KD-tree on the CPU whatever the device.
-    """
+def point_to_mesh_loss(verts_cam: torch.Tensor, normals_cam: torch.Tensor, cloud: torch.Tensor):
+    """Eq. (4), block 3: mean squared distance of the cloud's points to the mesh surface (point-to-plane at the
+    nearest vertex), and the point-to-vertex term eq. (3) adds a little of. Returns (point_to_plane, to_vertex)."""
     tree = cKDTree(verts_cam.detach().cpu().numpy())
     _, nn = tree.query(cloud.cpu().numpy(), k=1)
     nn = torch.from_numpy(nn).to(cloud.device)
@@ -121,8 +114,23 @@ def rgbd_block_losses(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights) 
     # distance to the vertex itself would be biased by the vertex spacing); a little point-to-vertex keeps the
     # surface from sliding along itself
     plane = ((diff * normals_cam[nn]).sum(-1) ** 2).mean()
+    return plane, to_vertex
+
+
+def landmark_and_cloud_loss(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights) -> torch.Tensor:
+    """Eq. (3), block 2: w1 * landmark RMSE + w2 * cloud-to-mesh distance."""
+    return rgbd_block_losses(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights)["block2"]
+
+
+def rgbd_block_losses(lmk_pred, lmk_gt, verts_cam, normals_cam, cloud, weights) -> dict[str, torch.Tensor]:
+    """Eqs. (2)-(4) for one frame: landmark RMSE, cloud-to-vertex chamfer, and point-to-mesh (point-to-plane).
+
+    lmk (L,3), verts_cam/normals_cam (V,3) camera frame, cloud (P,3). Nearest vertices are found without gradients,
+    with a KD-tree on the CPU whatever the device.
+    """
+    plane, to_vertex = point_to_mesh_loss(verts_cam, normals_cam, cloud)
     to_mesh = plane + 0.05 * to_vertex
-    lm = rmse(lmk_pred, lmk_gt)
+    lm = landmark_rmse(lmk_pred, lmk_gt)
     return {"block1": lm, "block2": weights[0] * lm + weights[1] * to_mesh, "block3": plane, "to_vertex": to_vertex}
 
 
@@ -174,6 +182,12 @@ class RGBDFitter:
         return {k: v.detach() for k, v in state.items()}, history
 
 
+def texture_fit_loss(pred_rgb: torch.Tensor, pred_mask: torch.Tensor, target: torch.Tensor, mask: torch.Tensor):
+    """Eq. (5): mean absolute colour error over the pixels inside both the ground-truth mask and the render."""
+    m = mask * pred_mask
+    return ((pred_rgb - target).abs() * m).sum() / (3 * m.sum()).clamp(min=1)
+
+
 def fit_texture(model: HeadModel, state, image, mask, K, iterations: int, lr: float):
     """Eq. (5): texture and lighting by masked photometric L1 with the geometry and camera fixed."""
     size, device = image.shape[:2], state["rot"].device
@@ -191,7 +205,7 @@ def fit_texture(model: HeadModel, state, image, mask, K, iterations: int, lr: fl
         params = {"shape": state["shape"], "expression": state["expression"], "pose": state["pose"],
                   "texture": texture}
         out = renderer(params, camera, lighting)
-        loss = ((out.rgb - target).abs() * m * out.mask).sum() / (3 * (m * out.mask).sum()).clamp(min=1)
+        loss = texture_fit_loss(out.rgb, out.mask, target, m)
         loss.backward()
         optim.step()
     return texture.detach(), lighting.detach(), float(loss.detach())

@@ -18,9 +18,9 @@ import numpy as np
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from avatarlab.data.subject_files import load_frame_stack  # noqa: F401  (re-exported for the steps)
 from avatarlab.entry import InputError, entry_point
 from avatarlab.io import write_json
+from avatarlab.preprocess.crop import crop_and_resize
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
@@ -135,15 +135,6 @@ def stable_head_crop(frames, margin: float, samples: int, upsample: int) -> tupl
     return int(round(cx)), int(round(cy)), side
 
 
-def crop_and_resize(frame: np.ndarray, crop, size: int) -> np.ndarray:
-    cx, cy, side = crop
-    half = side / 2
-    # affine map of the crop square onto the output; outside the frame, edge pixels are replicated
-    scale = size / side
-    M = np.array([[scale, 0, -(cx - half) * scale], [0, scale, -(cy - half) * scale]], dtype=np.float64)
-    return cv2.warpAffine(frame, M, (size, size), flags=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
-
 
 def write_frames(subject_dir: Path, frames, sources, fps, crop, size, kinds, inputs) -> dict:
     out_dir = subject_dir / "frames"
@@ -164,12 +155,6 @@ def write_frames(subject_dir: Path, frames, sources, fps, crop, size, kinds, inp
     write_json(subject_dir / "frames.json", meta)
     return meta
 
-
-def crop_points(points: np.ndarray, meta: dict) -> np.ndarray:
-    """Original-image pixel coordinates -> coordinates in the cropped, resized frames."""
-    c = meta["crop"]
-    scale = meta["size"] / c["side"]
-    return (points - np.array([c["cx"] - c["side"] / 2, c["cy"] - c["side"] / 2])) * scale
 
 
 @entry_point(READS)

@@ -14,10 +14,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json
-from avatarlab.preprocess.frames import load_frame_stack
-from avatarlab.preprocess.track_landmarks import load_landmarks
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
@@ -92,8 +91,8 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 @entry_point(READS)
 def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
-    frames, meta = load_frame_stack(subject_dir)
-    points, found = load_landmarks(subject_dir)
+    frames, meta = SubjectDir(subject_dir).frames(), SubjectDir(subject_dir).frames_meta()
+    points, found = SubjectDir(subject_dir).landmarks()
     method = METHODS[cfg.preprocess.mask.method]
     masks = np.zeros(frames.shape[:3], np.uint8)
     for i in tqdm(np.nonzero(found)[0], desc="masks", unit="frame", disable=None):
@@ -103,7 +102,7 @@ def main(cfg, device) -> None:
               "mean_coverage": float(masks.mean())}
     truth = cfg.preprocess.get("truth")
     if truth and Path(truth).is_file():
-        from avatarlab.preprocess.frames import crop_and_resize
+        from avatarlab.preprocess.crop import crop_and_resize
 
         with np.load(truth) as t:
             crop = (meta["crop"]["cx"], meta["crop"]["cy"], meta["crop"]["side"])

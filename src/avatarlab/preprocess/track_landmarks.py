@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import InputError, entry_point
 from avatarlab.io import atomic_path, write_json
-from avatarlab.preprocess.frames import crop_points, load_frame_stack
+from avatarlab.preprocess.crop import crop_points
 from avatarlab.preprocess.landmarks import _dlib_models, normalised_mean_error
 
 log = logging.getLogger(__name__)
@@ -45,12 +46,6 @@ def track(frames: np.ndarray, upsample: int):
     return points, boxes, found
 
 
-def load_landmarks(subject_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A subject's tracked landmarks (N, 68, 2) and the per-frame found flags (N,)."""
-    with np.load(Path(subject_dir) / "landmarks.npz") as lm:
-        return lm["points"], lm["found"]
-
-
 def truth_landmarks(truth_path: Path | None, meta: dict) -> np.ndarray | None:
     if truth_path is None or not Path(truth_path).is_file():
         return None
@@ -61,7 +56,7 @@ def truth_landmarks(truth_path: Path | None, meta: dict) -> np.ndarray | None:
 @entry_point(READS)
 def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
-    frames, meta = load_frame_stack(subject_dir)
+    frames, meta = SubjectDir(subject_dir).frames(), SubjectDir(subject_dir).frames_meta()
     points, boxes, found = track(frames, int(cfg.preprocess.detector_upsample))
     report = {"frames": len(frames), "found": int(found.sum()), "detection_rate": float(found.mean()),
               "missing_frames": np.nonzero(~found)[0].tolist()}

@@ -1,16 +1,20 @@
 """Head model + mesh renderer in one call: parameters and a camera in, images, masks, depth and landmarks out."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-from avatarlab.headmodel.flame import HeadModel
-from avatarlab.headmodel.texture import default_lighting
 from avatarlab.render.camera import Camera
+from avatarlab.render.lighting import default_lighting
 from avatarlab.render.mesh_renderer import MeshRenderer, RenderOutput
+
+if TYPE_CHECKING:  # render/ is a leaf: any object with the head model's interface will do
+    from avatarlab.headmodel.flame import HeadModel
 
 
 class HeadRenderer:
-    def __init__(self, model: HeadModel, background=(0.5, 0.5, 0.5), backface_shade: float = 0.15):
+    def __init__(self, model: "HeadModel", background=(0.5, 0.5, 0.5), backface_shade: float = 0.15):
         albedo = model.albedo_model
         self.model = model
         self.mesh_renderer = MeshRenderer(model.faces, background=background, backface_shade=backface_shade,

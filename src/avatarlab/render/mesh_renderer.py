@@ -6,8 +6,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from avatarlab.headmodel.texture import sh_basis
 from avatarlab.render.camera import Camera
+from avatarlab.render.lighting import sh_basis
 from avatarlab.render.rasterizer import Fragments, rasterize
 
 #: camera (OpenCV) axes -> view axes used for lighting: x right, y up, z towards the camera.

@@ -19,27 +19,18 @@ import numpy as np
 import torch
 
 from avatarlab.apps.avatar import load_avatar, load_fit, select, to_uint8
-from avatarlab.config import CPU
 from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json, write_png, write_video
-from avatarlab.safe_load import load_tensors
 from avatarlab.speech.features import FeatureSpec, read_wav, windows, write_wav
-from avatarlab.speech.models import AudioToVisemes
-from avatarlab.speech.visemes import NAMES, PHONEMES, viseme_basis, viseme_parameters
+from avatarlab.speech.models import load_speech_model
+from avatarlab.speech.visemes import NAMES, viseme_parameters
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'head_model', 'speech', 'apps')  # the config sections this step reads (avatarlab/entry.py)
 
 
-def load_speech_model(path: str | Path, head, device: torch.device = CPU) -> AudioToVisemes:
-    state = load_tensors(path, "a speech model (model.pt)")
-    if not isinstance(state, dict) or state.get("kind") != "lstm":
-        raise ValueError(f"{path}: audio animation needs the seed-000 (lstm) model, this is {state.get('kind')!r}")
-    model = AudioToVisemes(state["n_features"], len(NAMES), len(PHONEMES), viseme_basis(head), state["channels"],
-                           state["hidden"])
-    model.load_state_dict(state["model"])
-    return model.eval().to(device)
+
 
 
 def mux_audio(video: Path, wav: Path, out: Path) -> bool:

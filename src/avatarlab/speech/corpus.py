@@ -23,7 +23,14 @@ from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import resample
 from avatarlab.speech.tts import Espeak
-from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, normalise_phoneme, viseme_of, viseme_parameters
+from avatarlab.speech.visemes import (
+    NAMES,
+    PHONEMES,
+    frame_labels,
+    frontal_landmarks,
+    viseme_of,
+    viseme_parameters,
+)
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (avatarlab/entry.py)
@@ -39,13 +46,7 @@ def grid_sentence(rng: np.random.Generator) -> str:
     return " ".join(str(rng.choice(words)) for words in GRID_WORDS)
 
 
-def frame_labels(phonemes: list[tuple[str, float, float]], n_frames: int, fps: float = FPS) -> np.ndarray:
-    """The phoneme id (index in PHONEMES) sounding at each frame's time; '_' (silence) outside speech."""
-    labels = np.zeros(n_frames, np.int64)
-    for name, start, end in phonemes:
-        first, last = int(np.ceil(start * fps)), int(np.ceil(end * fps))
-        labels[first:min(last, n_frames)] = PHONEMES.index(normalise_phoneme(name))
-    return labels
+
 
 
 def viseme_weights(labels: np.ndarray, smoothing_frames: float) -> np.ndarray:

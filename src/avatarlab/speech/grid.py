@@ -23,12 +23,11 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
-from avatarlab.speech.animate import load_speech_model
-from avatarlab.speech.corpus import frame_labels
 from avatarlab.speech.features import FeatureSpec, frame_features, resample, windows
-from avatarlab.speech.train import LIPS, align_to, lip_error_percent
+from avatarlab.speech.lip_metrics import LIPS, align_to, lip_error_percent
+from avatarlab.speech.models import load_speech_model
 from avatarlab.speech.tts import Espeak
-from avatarlab.speech.visemes import PHONEMES, viseme_basis
+from avatarlab.speech.visemes import PHONEMES, frame_labels, viseme_basis
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'head_model', 'speech', 'apps')  # the config sections this step reads (avatarlab/entry.py)

@@ -9,8 +9,12 @@ are averaged.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torch import nn
+
+from avatarlab.safe_load import load_tensors
 
 
 class AudioToVisemes(nn.Module):
@@ -44,13 +48,19 @@ class AudioToVisemes(nn.Module):
         return flat.reshape(*weights.shape[:-1], 68, 2)
 
 
+def phoneme_regularizer(weights: torch.Tensor, logits: torch.Tensor, phoneme_to_viseme: torch.Tensor) -> torch.Tensor:
+    """Seed 000's regulariser (1/T) sum_t sum_k a_tk (1 - p_tk), with p_tk = P(viseme k) summed from the phoneme
+    probabilities: a viseme weight costs what the phoneme head finds it unlikely."""
+    p_vis = torch.softmax(logits, -1) @ phoneme_to_viseme
+    return (weights * (1 - p_vis)).sum(-1).mean()
+
+
 def speech_loss(weights, logits, landmarks, target_landmarks, target_phonemes, phoneme_to_viseme, lambda1, lambda2):
     """L = L_land + lambda1 CE(phonemes) + lambda2 (1/T) sum_t sum_k a_tk (1 - p_tk), p_tk = P(viseme k) from the
     phoneme probabilities: the weights may only use visemes the phoneme head finds likely (seed 000's regulariser)."""
     land = ((landmarks - target_landmarks) ** 2).sum(-1).mean()
     ce = nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), target_phonemes.reshape(-1))
-    p_vis = torch.softmax(logits, -1) @ phoneme_to_viseme
-    reg = (weights * (1 - p_vis)).sum(-1).mean()
+    reg = phoneme_regularizer(weights, logits, phoneme_to_viseme)
     total = land + lambda1 * ce + lambda2 * reg
     return total, {"landmarks": float(land.detach()), "ce": float(ce.detach()), "reg": float(reg.detach())}
 
@@ -92,3 +102,16 @@ class PhonemeWindowMLP(nn.Module):
             total.index_add_(0, frames[ok], out[ok, j])
             count.index_add_(0, frames[ok], torch.ones(int(ok.sum()), 1))
         return total / count.clamp(min=1)
+
+
+def load_speech_model(path: str | Path, head, device: torch.device | str = "cpu") -> "AudioToVisemes":
+    """The seed-000 model saved by the speech training step (weights only)."""
+    from avatarlab.speech.visemes import NAMES, PHONEMES, viseme_basis
+
+    state = load_tensors(path, "a speech model (model.pt)")
+    if not isinstance(state, dict) or state.get("kind") != "lstm":
+        raise ValueError(f"{path}: audio animation needs the seed-000 (lstm) model, this is {state.get('kind')!r}")
+    model = AudioToVisemes(state["n_features"], len(NAMES), len(PHONEMES), viseme_basis(head), state["channels"],
+                           state["hidden"])
+    model.load_state_dict(state["model"])
+    return model.eval().to(device)

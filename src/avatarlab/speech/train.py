@@ -23,37 +23,17 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import FeatureSpec, windows
+from avatarlab.speech.lip_metrics import align_to, lip_error_percent
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
 from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, phoneme_to_viseme_matrix, viseme_basis
 from avatarlab.tracking import start_run
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'head_model', 'speech', 'tracking')  # the config sections this step reads (avatarlab/entry.py)
-STABLE = list(range(17, 48))  # brows, nose, eyes
-LIPS = list(range(48, 68))
 
 
-def align_to(points: np.ndarray, reference: np.ndarray, idx=STABLE) -> np.ndarray:
-    """Similarity-align each (68, 2) frame of `points` (T, 68, 2) to `reference` on `idx` (Umeyama / Kabsch)."""
-    out = np.empty_like(points)
-    ref = reference[idx]
-    mu_r = ref.mean(0)
-    for t, frame in enumerate(points):
-        src = frame[idx]
-        mu_s = src.mean(0)
-        a, b = src - mu_s, ref - mu_r
-        u, s, vt = np.linalg.svd(b.T @ a)
-        d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
-        rot = u @ d @ vt
-        scale = (s * np.diag(d)).sum() / (a ** 2).sum()
-        out[t] = scale * (frame - mu_s) @ rot.T + mu_r
-    return out
 
 
-def lip_error_percent(pred: np.ndarray, truth: np.ndarray) -> float:
-    iod = np.linalg.norm(truth[:, 36] - truth[:, 45], axis=1)
-    err = np.linalg.norm(pred[:, LIPS] - truth[:, LIPS], axis=2).mean(1) / iod
-    return float(100 * err.mean())
 
 
 class Corpus:

@@ -8,6 +8,7 @@ of seed 000, l = Pr(B0) + sum_j a_j (Pr(B_j) - Pr(B0)).
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 # name: (jaw rad, mouth width change mm, upper-lip raise mm, lip part (+) / press (-) beyond the jaw, mm)
@@ -112,3 +113,12 @@ def viseme_basis(head) -> torch.Tensor:
     expression, jaw = viseme_parameters(head)
     with torch.no_grad():
         return frontal_landmarks(head, torch.zeros(1, head.n_shape), expression, jaw)
+
+
+def frame_labels(phonemes: list[tuple[str, float, float]], n_frames: int, fps: float = 25.0) -> np.ndarray:
+    """The phoneme id (index in PHONEMES) sounding at each frame's time; '_' (silence) outside speech."""
+    labels = np.zeros(n_frames, np.int64)
+    for name, start, end in phonemes:
+        first, last = int(np.ceil(start * fps)), int(np.ceil(end * fps))
+        labels[first:min(last, n_frames)] = PHONEMES.index(normalise_phoneme(name))
+    return labels

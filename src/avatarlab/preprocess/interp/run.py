@@ -19,9 +19,9 @@ from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from avatarlab.config import CPU, autocast, grad_scaler
+from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json, write_png
-from avatarlab.preprocess.frames import load_frame_stack
 from avatarlab.preprocess.interp.network import XVFILite
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.provenance import code_digest
@@ -111,7 +111,7 @@ def quality(pred: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
 @entry_point(READS)
 def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
-    frames_np, meta = load_frame_stack(subject_dir)
+    frames_np = SubjectDir(subject_dir).frames()
     frames = to_tensor(frames_np)
     kept, held = split_variants(len(frames))
     if len(held) == 0:

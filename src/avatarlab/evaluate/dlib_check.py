@@ -3,7 +3,7 @@
 Frontal renders of random heads (shape, expression, texture ~ N(0, std) clipped to [-2, 2]) go through the same
 landmark detector as real video frames; the NME (mean point error over the outer-eye-corner distance) compares
 dlib's points with the model's projected landmark embedding.
-`python -m avatarlab.headmodel.dlib_check [overrides]`; writes a JSON report and an overlay PNG.
+`python -m avatarlab.evaluate.dlib_check [overrides]`; writes a JSON report and an overlay PNG.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Parameter-sweep grid of the head model, like figures 4-7 of the dissertation.
 
 Rows: shape and expression components, jaw and neck rotations about x/y/z, eye gaze, texture components and camera
-distance; columns: values across the meaningful range. `python -m avatarlab.headmodel.render_demo [overrides]`.
+distance; columns: values across the meaningful range. `python -m avatarlab.evaluate.head_model_demo [overrides]`.
 """
 from __future__ import annotations
 

@@ -1,0 +1,117 @@
+"""Structure checks: foundations never import stages, entry points never import each other, no package cycles, and
+every equation of docs/equations.md names a function that exists."""
+from __future__ import annotations
+
+import ast
+import importlib
+import re
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "avatarlab"
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+#: the foundations: geometry, rendering, the head model, the network and plumbing every stage may use
+FOUNDATIONS = {"render", "headmodel", "model", "geometry", "errors", "safe_load", "provenance", "io", "config"}
+#: the stages and the infrastructure that runs them
+STAGES = {"preprocess", "data", "train", "evaluate", "apps", "speech", "workflow", "tracking", "entry", "dashboard",
+          "cli", "schema"}
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(SRC.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def runtime_imports(path: Path) -> set[str]:
+    """avatarlab modules imported by `path` at run time (imports under `if TYPE_CHECKING:` do not count)."""
+    tree = ast.parse(path.read_text())
+    skip = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip.update(id(n) for n in ast.walk(node))
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("avatarlab"):
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.startswith("avatarlab"))
+    modules = {module_name(p) for p in SRC.rglob("*.py")}
+    return {m for m in found if m in modules}
+
+
+def top(module: str) -> str:
+    return module.split(".")[1] if "." in module else module
+
+
+MODULES = {module_name(p): p for p in SRC.rglob("*.py")}
+
+
+def is_entry_point(path: Path) -> bool:
+    return bool(re.search(r"^READS = ", path.read_text(), flags=re.M))
+
+
+def test_foundations_import_no_stage():
+    wrong = [f"{name} imports {imp}" for name, path in MODULES.items() if top(name) in FOUNDATIONS
+             for imp in runtime_imports(path) if top(imp) in STAGES]
+    assert not wrong, wrong
+
+
+def test_entry_points_import_no_other_entry_point():
+    entries = {name for name, path in MODULES.items() if is_entry_point(path)}
+    assert len(entries) >= 15
+    wrong = [f"{name} imports {imp}" for name in entries for imp in runtime_imports(MODULES[name])
+             if imp in entries and imp != name]
+    assert not wrong, wrong
+
+
+def test_no_import_cycle_between_packages():
+    edges = {}
+    for name, path in MODULES.items():
+        for imp in runtime_imports(path):
+            if top(imp) != top(name):
+                edges.setdefault(top(name), set()).add(top(imp))
+
+    def reaches(start, goal, seen=()):
+        return any(n == goal or (n not in seen and reaches(n, goal, (*seen, n))) for n in edges.get(start, ()))
+
+    cycles = sorted(p for p in edges if reaches(p, p))
+    assert not cycles, {p: sorted(edges[p]) for p in cycles}
+
+
+def test_the_import_checks_can_fail(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("from typing import TYPE_CHECKING\nfrom avatarlab.train.loop import train\n"
+                   "if TYPE_CHECKING:\n    from avatarlab.data.splits import subject_split\n")
+    assert runtime_imports(bad) == {"avatarlab.train.loop"}  # the TYPE_CHECKING import does not count
+
+
+def equation_rows() -> list[tuple[str, str]]:
+    text = (DOCS / "equations.md").read_text()
+    return re.findall(r"^\| *([^|]+?) *\|[^|]*\| *`(avatarlab[\w.]+)`", text, flags=re.M)
+
+
+def test_equation_index_names_existing_functions():
+    rows = equation_rows()
+    labels = " ".join(label for label, _ in rows)
+    for n in range(1, 12):  # the dissertation's numbered equations (1)-(11)
+        assert re.search(rf"\({n}\)", labels), f"eq. ({n}) missing from docs/equations.md"
+    for needed in ("seed 000", "seed 001"):
+        assert needed in labels, needed
+    for label, dotted in rows:
+        module, _, attr = dotted.rpartition(".")
+        try:
+            obj = importlib.import_module(module)
+        except ModuleNotFoundError:  # a method: module.Class.method
+            module, _, cls = module.rpartition(".")
+            obj = getattr(importlib.import_module(module), cls)
+        assert callable(getattr(obj, attr, None)), f"{label}: {dotted} does not exist"
+
+
+@pytest.mark.parametrize("name", ["texture_fit_loss", "phoneme_regularizer"])
+def test_named_losses_are_indexed(name):
+    assert any(dotted.endswith("." + name) for _, dotted in equation_rows())
