@@ -120,6 +120,29 @@ def test_paper_scale_dry_run_lists_the_full_graph_with_cluster_resources(tmp_pat
 
 
 @pytest.mark.slow
+def test_the_cluster_state_is_private_and_postgres_wants_a_password(cluster_env):
+    """Not a predictable /tmp folder, the password file 0600, no `trust` login: a local user without the password
+    cannot reach the tracking database."""
+    pgpass = Path(cluster_env["PGPASSFILE"])
+    folder = pgpass.parent
+    assert folder != Path("/tmp/avatarlab-cluster") and not folder.is_symlink()
+    assert folder.stat().st_mode & 0o777 in (0o700, 0o711) and folder.stat().st_uid == os.geteuid()
+    assert pgpass.stat().st_mode & 0o777 == 0o600
+    hba = (folder / "postgres" / "data" / "pg_hba.conf").read_text()
+    assert not re.search(r"^\s*(local|host)\S*\s.*\btrust\s*$", hba, flags=re.M), hba
+    psql = next(Path("/usr/lib/postgresql").glob("*/bin/psql"))
+    port = os.environ.get("AVATARLAB_PG_PORT", "55432")
+    no_password = {k: v for k, v in cluster_env.items() if k not in ("PGPASSFILE", "PGPASSWORD")}
+    no_password["PGPASSFILE"] = "/dev/null"
+    refused = subprocess.run([str(psql), "-w", "-h", "127.0.0.1", "-p", port, "-U", "postgres", "-d", "mlflow", "-tAc",
+                              "SELECT 1"], capture_output=True, text=True, env=no_password)
+    assert refused.returncode != 0 and "password" in refused.stderr, refused.stderr
+    allowed = subprocess.run([str(psql), "-w", "-h", "127.0.0.1", "-p", port, "-U", "postgres", "-d", "mlflow", "-tAc",
+                              "SELECT 1"], capture_output=True, text=True, env=cluster_env)
+    assert allowed.stdout.strip() == "1", allowed.stderr
+
+
+@pytest.mark.slow
 def test_two_workflows_log_concurrently_to_the_postgres_tracking_server(cluster_env, tmp_path):
     """Two workflow runs write to one PostgreSQL-backed MLflow server at the same time: no run and no metric is lost."""
     import mlflow
@@ -163,5 +186,6 @@ def test_two_workflows_log_concurrently_to_the_postgres_tracking_server(cluster_
     port = os.environ.get("AVATARLAB_PG_PORT", "55432")
     rows = subprocess.run([str(psql), "-h", "127.0.0.1", "-p", port, "-U", "postgres", "-d", "mlflow", "-tAc",
                            "SELECT count(*) FROM tags WHERE key = 'results_dir' AND value LIKE "
-                           f"'{tmp_path.resolve()}/%'"], capture_output=True, text=True, check=True).stdout
+                           f"'{tmp_path.resolve()}/%'"], capture_output=True, text=True, check=True,
+                          env=cluster_env).stdout
     assert int(rows.strip()) == 4
