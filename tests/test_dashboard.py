@@ -34,17 +34,21 @@ def chromium(*args: str, timeout=120) -> subprocess.CompletedProcess:
 def dashboard(tmp_path_factory):
     if CHROMIUM is None:
         pytest.skip("Debian's chromium is not installed (`make test` installs it with apt-get where it can)")
+    import mlflow
+
     from avatarlab.tracking import init_store, start_run
 
     results = tmp_path_factory.mktemp("dash") / "results"
     saved = os.environ.get("MLFLOW_TRACKING_URI")  # mlflow.set_tracking_uri exports it: restore it afterwards
     init_store(results)
     cfg = OmegaConf.create({"paths": {"results": str(results)}, "scale": {"name": "smoke"},
-                            "head_model": {"kind": "procedural"}})
+                            "head_model": {"kind": "procedural"},
+                            "tracking": {"enabled": True, "experiment": "avatarlab-smoke", "scale": "smoke"}})
     for k, init in enumerate(("alpha1", "alpha2", "beta6_from_alpha2")):
-        with start_run(cfg, "finetune", f"synth_talk/{init}", {"subject": "synth_talk", "init": init}) as mlf:
-            mlf.log_params({"init": init, "iterations": 150})
-            mlf.log_metrics({"test_all_psnr": 24.5 + k, "test_all_ssim": 0.81 + 0.01 * k, "train_seconds": 60.0})
+        with start_run(cfg, "finetune", f"synth_talk/{init}", {"subject": "synth_talk", "init": init}):
+            mlflow.log_params({"init": init, "iterations": 150})
+            mlflow.log_metrics({"test_all_psnr": 24.5 + k, "test_all_ssim": 0.81 + 0.01 * k, "train_seconds": 60.0,
+                             "test_all_st_lpips": 0.31 - 0.01 * k, "test_all_gain_psnr": -1.25 + k})
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     server = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results),
@@ -62,7 +66,7 @@ def dashboard(tmp_path_factory):
                 time.sleep(0.5)
         else:
             pytest.fail("dashboard did not answer within 60 s")
-        yield base, results
+        yield base, results, port
     finally:
         os.killpg(server.pid, signal.SIGTERM)  # mlflow server, uvicorn and its job consumers, not only our wrapper
         try:
@@ -84,7 +88,7 @@ def api(base: str, path: str, payload: dict | None = None) -> dict:
 
 @pytest.mark.slow
 def test_dashboard_shows_the_runs_table_with_metrics(dashboard, tmp_path):
-    base, results = dashboard
+    base, results, _ = dashboard
     exp = api(base, "/api/2.0/mlflow/experiments/get-by-name?experiment_name=avatarlab-smoke")["experiment"]
     assert exp["artifact_location"].startswith((results / "mlartifacts").as_uri())
     exp_id = exp["experiment_id"]
@@ -108,3 +112,92 @@ def test_dashboard_shows_the_runs_table_with_metrics(dashboard, tmp_path):
         assert metric in dom
     assert "26.5" in dom and "24.5" in dom, "metric values appear in the table"
     assert (tmp_path / "compare.png").stat().st_size > 20_000
+
+
+@pytest.mark.slow
+def test_the_printed_link_opens_the_runs_table_with_the_quality_columns(dashboard, tmp_path):
+    """The link `make dashboard` prints: the runs view of the scale's experiment (model training, not GenAI), with
+    test PSNR, its gain over the best baseline, SSIM, ST-LPIPS and the stage/subject tags visible without picking."""
+    from avatarlab.dashboard import dashboard_link
+
+    base, results, port = dashboard
+    link = dashboard_link(results, port, "smoke")
+    assert link.startswith(f"{base}/#/experiments/") and link.endswith("/runs?viewStateShareKey=avatarlab")
+    exp = api(base, "/api/2.0/mlflow/experiments/get-by-name?experiment_name=avatarlab-smoke")["experiment"]
+    tags = {t["key"]: t["value"] for t in exp["tags"]}
+    assert tags["mlflow.experimentKind"] == "custom_model_development"
+    shot = tmp_path / "landing.png"
+    chromium("--window-size=1600,900", f"--screenshot={shot}", link)
+    assert np.asarray(Image.open(shot).convert("L"), dtype=float).std() > 8
+    dom = chromium("--window-size=1600,900", "--dump-dom", link).stdout
+    assert "share key" not in dom, "the shared view loads"
+    for column in ("test_all_psnr", "test_all_gain_psnr", "test_all_ssim", "test_all_st_lpips", "stage", "subject"):
+        assert column in dom, column
+    assert "25.5" in dom and "-0.25" in dom, "the values are in the visible columns"
+
+
+def local_store(results):
+    """A SQLite store under `results`, whatever MLFLOW_TRACKING_URI says (restored afterwards)."""
+    from avatarlab.tracking import init_store
+
+    saved = os.environ.pop("MLFLOW_TRACKING_URI", None)
+    try:
+        init_store(results, scales=("smoke",))
+    finally:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+        if saved is not None:
+            os.environ["MLFLOW_TRACKING_URI"] = saved
+
+
+def test_a_taken_port_is_reported_and_the_exit_status_is_1(tmp_path):
+    results = tmp_path / "results"
+    local_store(results)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+        out = subprocess.run([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results), "--port",
+                              str(port)], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 1
+    assert f"port {port} on 127.0.0.1 is already in use" in out.stderr and "dashboard:" not in out.stdout
+
+
+def listeners(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_server_and_all_its_workers(tmp_path):
+    """SIGTERM to the dashboard's own PID (not its group, as `kill <pid>` does) leaves no server listening and no
+    process of its group alive."""
+    results = tmp_path / "results"
+    local_store(results)
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    proc = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results), "--port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        for _ in range(120):
+            if listeners(port):
+                break
+            assert proc.poll() is None, proc.stdout.read()
+            time.sleep(0.5)
+        else:
+            pytest.fail("the dashboard did not listen within 60 s")
+        server_groups = {os.getpgid(int(p)) for p in subprocess.run(["pgrep", "-f", f"mlflow server .*--port {port}"],
+                                                                    capture_output=True, text=True).stdout.split()}
+        assert server_groups and proc.pid not in server_groups, "the server runs in a process group of its own"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        for _ in range(40):
+            left = [g for g in server_groups if subprocess.run(["pgrep", "-g", str(g)], capture_output=True).stdout]
+            if not left and not listeners(port):
+                break
+            time.sleep(0.5)
+        assert not left, f"processes of the server's group still alive: {left}"
+        assert not listeners(port)
+    finally:
+        if proc.poll() is None:
+            proc.kill()

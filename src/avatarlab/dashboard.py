@@ -16,7 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from avatarlab.tracking import TELEMETRY_OFF
+from avatarlab.tracking import TELEMETRY_OFF, VIEW_KEY
 
 
 def command(results: Path, port: int, host: str = "127.0.0.1") -> list[str]:
@@ -85,7 +85,8 @@ def main(argv=None) -> int:
 
 
 def dashboard_link(results: Path, port: int, scale: str) -> str:
-    """The page a user should land on: the runs table of this scale's experiment (model training)."""
+    """The page a user should land on: the runs table of this scale's experiment (model training), in the shared
+    view with the quality columns (tracking.set_dashboard_view)."""
     base = f"http://127.0.0.1:{port}"
     os.environ.update(TELEMETRY_OFF)
     from mlflow.tracking import MlflowClient
@@ -95,7 +96,7 @@ def dashboard_link(results: Path, port: int, scale: str) -> str:
     if experiment is None:
         print(f"note: no experiment avatarlab-{scale} in the store yet; opening the home page", file=sys.stderr)
         return base
-    return f"{base}/#/experiments/{experiment.experiment_id}/runs"
+    return f"{base}/#/experiments/{experiment.experiment_id}/runs?viewStateShareKey={VIEW_KEY}"
 
 
 if __name__ == "__main__":

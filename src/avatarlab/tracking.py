@@ -10,6 +10,7 @@ so the dashboard never shows two finished runs of the same step.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import socket
@@ -97,11 +98,29 @@ def mark_dead_runs_killed(results_dir: str | Path, experiments: list[str]) -> in
     return count
 
 
+#: the runs-table view the dashboard link opens (MLflow's shared view state, an experiment tag): the quality numbers
+#: beside their gain over the best trivial predictor, and the tags that say which run is which
+VIEW_KEY = "avatarlab"
+VIEW_COLUMNS = [f"metrics.`{m}`" for m in (
+    "test_all_psnr", "test_all_gain_psnr", "test_all_ssim", "test_all_st_lpips", "test_all_lpips",
+    "test_psnr_head", "test_gain_psnr_head", "test_ssim", "test_st_lpips")] + [
+    f"tags.`{t}`" for t in ("stage", "strategy", "subject", "init", "recipe", "sweep", "point", "seed")]
+
+
+def set_dashboard_view(experiment_id: str, results_dir: str | Path) -> None:
+    """The shared view `?viewStateShareKey=avatarlab` of the experiment's runs table: VIEW_COLUMNS as visible
+    columns, newest runs first."""
+    mlflow = _mlflow(results_dir)
+    state = {"selectedColumns": VIEW_COLUMNS, "orderByKey": "attributes.start_time", "orderByAsc": False}
+    mlflow.tracking.MlflowClient().set_experiment_tag(experiment_id, f"mlflow.sharedViewState.{VIEW_KEY}",
+                                                      json.dumps(state))
+
+
 def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
     Path(results_dir).mkdir(parents=True, exist_ok=True)
     names = [experiment_name(s) for s in scales]
     for name in names:
-        ensure_experiment(name, results_dir)
+        set_dashboard_view(ensure_experiment(name, results_dir), results_dir)
     killed = mark_dead_runs_killed(results_dir, names)
     if killed:
         log.info("%d runs left RUNNING by a process that no longer exists are now KILLED", killed)
