@@ -47,6 +47,8 @@ def test_dry_run_lists_the_jobs(tmp_path):
     assert planned["pretrain_alpha"] == 2 and planned["pretrain_beta"] == 12 and planned["evaluate_pretrained"] == 16
     # the default obama subject's clips are a path relative to the work directory: absent here, left out
     assert planned["finetune_avatar"] == 14 + 2 + 1 and planned["finetune_interp_variant"] == 4
+    # seeds 1 and 2 of the final recipe (two synthetic subjects) and of the alpha1 / alpha2 avatars of synth_talk
+    assert planned["finetune_avatar_seed"] == 2 * 2 + 2 * 2 and planned["evaluate_avatar"] == 17 + 4 + 8
 
 
 @pytest.mark.slow

@@ -84,6 +84,19 @@ def test_code_digest_ignores_docstrings_and_comments_but_not_code(tmp_path):
     assert code_digest("avatarlab.entry", src=tmp_path) != before
 
 
+def test_tracking_and_error_modules_are_not_part_of_a_steps_code(tmp_path):
+    pkg = tmp_path / "avatarlab"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "tracking.py").write_text("def log(x):\n    return None\n")
+    (pkg / "entry.py").write_text("from avatarlab.tracking import log\n\nlog(1)\n")
+    before = code_digest("avatarlab.entry", src=tmp_path)
+    (pkg / "tracking.py").write_text("def log(x):\n    print(x)\n")
+    assert code_digest("avatarlab.entry", src=tmp_path) == before
+    (pkg / "entry.py").write_text("from avatarlab.tracking import log\n\nlog(2)\n")
+    assert code_digest("avatarlab.entry", src=tmp_path) != before
+
+
 def test_docstring_edits_in_infrastructure_change_no_digest():
     io = REPO / "src" / "avatarlab" / "io.py"
     text = io.read_text()
@@ -108,8 +121,14 @@ def test_plan_lists_the_dissertations_experiments():
     plan = Plan(config)
     assert len(plan.pretrained) == 14 and plan.speech_models == ["lstm_noreg", "lstm_reg", "window"]
     outputs = plan.avatar_outputs()
-    assert sum("/base/" in o and o.endswith("eval.json") and "_frames" not in o for o in outputs) == 14 + 1
-    assert all(f"avatars/{s}/final/beta6_from_alpha2/eval.json" in " ".join(outputs) for s in plan.subjects)
+    plain = [o for o in outputs if "/base/" in o and "_frames" not in o and "_seed" not in o]
+    assert len(plain) == 14 + 1  # 14 initialisations of synth_talk + the interpolation base of synth_turns
+    assert plan.seeds == 3
+    for s in plan.subjects:  # the final recipe with seeds 0, 1, 2
+        for name in ("beta6_from_alpha2", "beta6_from_alpha2_seed1", "beta6_from_alpha2_seed2"):
+            assert f"results/smoke/avatars/{s}/final/{name}/eval.json" in outputs
+    seeded = sorted(o.split("/base/")[1] for o in outputs if "/base/" in o and "_seed" in o)
+    assert seeded == [f"{a}_seed{k}/eval.json" for a in ("alpha1", "alpha2") for k in (1, 2)]
     assert plan.subject_values("portraits")["fit_rgb.mode"] == "images"
 
 

@@ -13,6 +13,10 @@ import json
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1]  # the folder that holds the avatarlab package
+#: modules whose edits cannot change a result: experiment tracking, error types, the config schema's checks (they
+#: refuse or record, never compute), the dashboard and the CLI. They are not part of any step's code digest.
+INFRASTRUCTURE = frozenset({"avatarlab.tracking", "avatarlab.errors", "avatarlab.schema", "avatarlab.dashboard",
+                            "avatarlab.cli"})
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:
@@ -69,9 +73,11 @@ def imported_modules(*entry_modules: str, src: Path = SRC) -> list[str]:
 
 
 def code_digest(*entry_modules: str, src: Path = SRC) -> str:
-    """One digest of the code an entry module runs (see `imported_modules`)."""
+    """One digest of the code an entry module runs (see `imported_modules`), infrastructure modules left out."""
     h = hashlib.sha256()
     for name in imported_modules(*entry_modules, src=src):
+        if name in INFRASTRUCTURE:
+            continue
         h.update(f"{name}:{source_digest(module_path(name, src))}\n".encode())
     return h.hexdigest()[:16]
 

@@ -28,6 +28,34 @@ rule finetune_avatar:
         "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
+rule finetune_avatar_seed:
+    """The same avatar with another seed (batch order, synthetic samples, offsets): the seed-to-seed spread that
+    every comparison of avatars is judged against."""
+    input:
+        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
+        tracking=TRACKING_READY,
+    output:
+        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}/model.pt",
+        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}/train.json",
+    log:
+        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}.log",
+    params:
+        **step_params(
+            "avatarlab.train.finetune", extra=lambda wc: (f"finetune={wc.recipe}", f"seed={wc.seed}"),
+            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model),
+                                              "finetune.init_model": input.model},
+            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.init}_seed{wc.seed}/.hydra"),
+    threads: step_threads("finetune")
+    resources:
+        **step_resources("finetune"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+
+
 rule finetune_interp_variant:
     """The interpolation experiment's avatars (base recipe): (b) every second training frame dropped, (c) (b) + the
     dropped frames re-created by the frame interpolator. Variant (a) is the base avatar of the same init."""
@@ -80,7 +108,7 @@ rule evaluate_avatar:
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={wc.recipe}",),
             values=lambda wc, input, output: {
                 **finetune_values(wc.subject, avatar_variant(wc)[0], input.model, avatar_variant(wc)[1]),
-                "evaluate.model": input.model, "evaluate.out": output.report,
+                "seed": avatar_variant(wc)[2], "evaluate.model": input.model, "evaluate.out": output.report,
                 **({"finetune.interpolated": input.interpolated[0]} if input.interpolated else {})},
             run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra/eval"),
     threads: step_threads("light")

@@ -44,6 +44,7 @@ wildcard_constraints:
     init="|".join(PLAN.pretrained),
     recipe="base|final",
     variant="b|c",
+    seed="[1-9][0-9]*",
     speech_model="|".join(PLAN.speech_models),
 
 

@@ -37,9 +37,11 @@ def finetune_values(subject, init, model, variant="a"):
 
 # (avatar.smk)
 def avatar_variant(wc):
-    """init and frames variant of an avatar folder name (<init> or <init>_frames<b|c>)."""
-    name = wc.avatar
-    return (name[:-8], name[-1]) if name[-8:-1] == "_frames" else (name, "a")
+    """init, frames variant and seed of an avatar folder name (<init>, <init>_frames<b|c> or <init>_seed<k>)."""
+    name, seed = wc.avatar, 0
+    if "_seed" in name:
+        name, seed = name.rsplit("_seed", 1)[0], int(name.rsplit("_seed", 1)[1])
+    return (name[:-8], name[-1], seed) if name[-8:-1] == "_frames" else (name, "a", seed)
 
 
 # (avatar.smk)

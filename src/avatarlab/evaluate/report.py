@@ -17,10 +17,12 @@ import csv
 import io
 import json
 import logging
+import re
 import shutil
 from pathlib import Path
 
 from avatarlab.entry import entry_point
+from avatarlab.evaluate.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
 from avatarlab.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -104,13 +106,47 @@ def load_runs(results: Path, pattern: str) -> list[dict]:
 
 
 def load_avatars(results: Path) -> list[dict]:
-    """avatars/<subject>/<recipe>/<init>[_frames<b|c>]/."""
+    """avatars/<subject>/<recipe>/<init>[_frames<b|c>][_seed<k>]/."""
     avatars = load_runs(results, "avatars/*/*/*")
     for a in avatars:
         a["subject"], a["recipe"] = a["dir"].parent.parent.name, a["dir"].parent.name
         a["init"] = a["eval"]["init"]
         a["variant"] = a["eval"].get("frames_variant", "a")
+        seed = re.search(r"_seed(\d+)$", a["dir"].name)
+        a["seed"] = int(seed.group(1)) if seed else 0
     return avatars
+
+
+def seeded_runs(avatars: list[dict], subject: str, recipe: str, init: str) -> list[dict]:
+    """The seeds of one avatar (all frames, variant a), by seed."""
+    return sorted((a for a in avatars if (a["subject"], a["recipe"], a["init"], a["variant"]) ==
+                   (subject, recipe, init, "a")), key=lambda a: a["seed"])
+
+
+SEEDED = ("psnr", "gain", "ssim", "st_lpips")
+
+
+def seeded_row(runs: list[dict], part: str = "all") -> dict:
+    """One table row for the seeds of an avatar: the mean of each number over seeds, `seeds`, and the 95 % CI
+    half-width of PSNR, gain, SSIM and ST-LPIPS (None with one seed)."""
+    rows = [avatar_row(a, part) for a in runs]
+    row = dict(rows[0])
+    for key, value in rows[0].items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            row[key] = mean_ci(r.get(key) for r in rows)[0]
+    for key in SEEDED:
+        row[key], row[f"{key}_ci95"], _ = mean_ci(r.get(key) for r in rows)
+    row["seeds"] = len(rows)
+    return row
+
+
+def seed_noise(avatars: list[dict], metric: str = "psnr") -> tuple[float | None, int]:
+    """Pooled seed-to-seed standard deviation of an avatar's test `metric` over every seeded avatar."""
+    groups: dict[tuple, list[float]] = {}
+    for a in avatars:
+        if a["variant"] == "a":
+            groups.setdefault((a["subject"], a["recipe"], a["init"]), []).append(a["eval"]["all"]["model"][metric])
+    return pooled_sd(groups.values())
 
 
 def gain_columns(part: dict, metric: str) -> dict:
@@ -213,6 +249,9 @@ AVATAR_COLUMNS = ["subject", "recipe", "init", "variant", "subset", "test_frames
                   "identity_similarity", "train_seconds"]
 
 
+SEEDED_COLUMNS = ["seeds", "psnr_ci95", "gain_ci95", "ssim_ci95", "st_lpips_ci95"]
+
+
 def avatar_row(avatar: dict, part: str = "all") -> dict:
     ev = avatar["eval"]
     scores = ev[part]
@@ -227,21 +266,22 @@ def avatar_row(avatar: dict, part: str = "all") -> dict:
 
 
 def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
-    table = Table("final_avatars", "Final-recipe avatars on their test frames, beside trivial baselines",
-                  AVATAR_COLUMNS + ["split"],
+    table = Table("final_avatars", "Final-recipe avatars on their test frames, beside trivial baselines "
+                  "(mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS + ["split"],
                   "Baselines predict each test frame from the training frames alone (their mean; the last one; the "
                   "one nearest in fitted expression, jaw, neck and camera), composited into the same true mask. "
                   "face_detection_rate / landmark_nme / identity_similarity: dlib on the renders (NME against the "
                   "frame's tracked landmarks, outer-eye normalised). split: last_frames (INSTA protocol) or "
                   "held_out_clips (every frame of a clip the avatar never saw).")
-    for a in avatars:
-        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a":
-            table.add(**avatar_row(a), split=a["eval"].get("split"))
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
+        runs = seeded_runs(avatars, subject, "final", final)
+        if runs:
+            table.add(**seeded_row(runs), split=runs[0]["eval"].get("split"))
     base = Table("final_avatar_baselines", "The same test frames, scored for each trivial baseline",
                  ["subject", "predictor", "psnr", "ssim", "st_lpips", "face_detection_rate", "landmark_nme",
-                  "identity_similarity"])
+                  "identity_similarity"], "Seed 0's avatar (the baselines do not depend on the seed).")
     for a in avatars:
-        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a":
+        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             part = a["eval"]["all"]
             for name, scores in [("model", part["model"])] + sorted(part["baselines"].items()):
                 base.add(subject=a["subject"], predictor=name, **{k: scores.get(k) for k in base.columns[2:]})
@@ -251,27 +291,61 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
 
 def alpha_table(avatars: list[dict]) -> Table:
     table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
-                  "the mouth-open subset", AVATAR_COLUMNS,
+                  "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,
                   "The mouth-open subset = the test frames with the widest fitted jaw opening (the dissertation: 30 "
                   "per subject). alpha2 adds the mouth interior in its last pretraining phase.")
-    for a in avatars:
-        if a["recipe"] == "base" and a["init"] in ("alpha1", "alpha2") and a["variant"] == "a":
-            for part in ("all", "mouth_open"):
-                table.add(**avatar_row(a, part))
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
+        for init in ("alpha1", "alpha2"):
+            runs = seeded_runs(avatars, subject, "base", init)
+            for part in ("all", "mouth_open") if runs else ():
+                table.add(**seeded_row(runs, part))
     table.note += " " + not_beating(table, ("subject", "init", "subset"))
     return table
 
 
+def alpha_paired_table(avatars: list[dict]) -> Table:
+    """alpha2 - alpha1, paired by seed (same seed: same batches and offsets), with the verdict on the noise."""
+    table = Table("alpha_paired", "alpha2 minus alpha1, paired by seed: is the difference larger than the "
+                  "seed-to-seed noise?", ["subject", "subset", "metric", "seeds", "difference", "ci95", "verdict"],
+                  "difference = mean over seeds of (alpha2 - alpha1) with the same seed; the verdict says whether its "
+                  "95 % confidence interval (Student's t) excludes zero. Higher is better for PSNR and SSIM, lower "
+                  "for ST-LPIPS.")
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
+        one, two = (seeded_runs(avatars, subject, "base", i) for i in ("alpha1", "alpha2"))
+        if not one or not two:
+            continue
+        for part in ("all", "mouth_open"):
+            for metric in ("psnr", "ssim", "st_lpips"):
+                a = {r["seed"]: r["eval"][part]["model"].get(metric) for r in one}
+                b = {r["seed"]: r["eval"][part]["model"].get(metric) for r in two}
+                if any(v is None for v in (*a.values(), *b.values())):
+                    continue
+                d = paired_difference(a, b)
+                table.add(subject=subject, subset=part, metric=metric, seeds=d["n"], difference=d["mean"],
+                          ci95=d["ci95"], verdict=d["verdict"])
+    return table
+
+
 def beta_table(avatars: list[dict]) -> Table:
+    sd, dof = seed_noise(avatars)
+    threshold = single_run_threshold(sd)
     table = Table("beta_ablation", "Avatars fine-tuned (base recipe) from beta1-beta6 continued from alpha1 / alpha2 "
-                  "(dissertation figures 39-42)", AVATAR_COLUMNS,
+                  "(dissertation figures 39-42)", AVATAR_COLUMNS + ["below_best_db", "differs_from_best"],
                   "beta1: real only; beta2: + z-augmentation; beta3: p=0.25; beta4: p 0.25->0; beta5: beta3 + z-aug; "
-                  "beta6: beta4 + z-aug (the final recipe, from alpha2).")
-    betas = [a for a in avatars if a["recipe"] == "base" and "_from_" in a["init"] and a["variant"] == "a"]
+                  "beta6: beta4 + z-aug (the final recipe, from alpha2). One seed each: below_best_db = the best "
+                  "beta's PSNR (same subject) minus this row's; differs_from_best says whether that exceeds the "
+                  "seed-to-seed noise, 1.96 x sqrt(2) x the pooled seed-to-seed SD of test PSNR measured on the "
+                  + (f"seeded avatars ({sd:.3f} dB, {dof} degrees of freedom: threshold {threshold:.2f} dB)."
+                     if sd is not None else "seeded avatars (none here: no verdict)."))
+    betas = [a for a in avatars if a["recipe"] == "base" and "_from_" in a["init"] and a["variant"] == "a"
+             and a["seed"] == 0]
     ablated = {s for s in {a["subject"] for a in betas} if sum(a["subject"] == s for a in betas) > 1}
+    best = {s: max(a["eval"]["all"]["model"]["psnr"] for a in betas if a["subject"] == s) for s in ablated}
     for a in sorted(betas, key=lambda r: (r["subject"], r["init"].split("_from_")[-1], r["init"])):
         if a["subject"] in ablated:  # subjects with the beta ablation (not a lone avatar of another experiment)
-            table.add(**avatar_row(a))
+            below = best[a["subject"]] - a["eval"]["all"]["model"]["psnr"]
+            differs = None if threshold is None else ("yes" if below > threshold else "no (within noise)")
+            table.add(**avatar_row(a), below_best_db=below, differs_from_best=differs)
     table.note += " " + not_beating(table, ("subject", "init"))
     return table
 
@@ -284,7 +358,7 @@ def interp_table(avatars: list[dict], final: str) -> Table:
                   "the XVFI-style network; their parameters are the neighbours' mean (no fit of the new frame).")
     by_subject: dict[str, dict] = {}
     for a in avatars:
-        if a["recipe"] == "base" and a["init"] == final:
+        if a["recipe"] == "base" and a["init"] == final and a["seed"] == 0:
             by_subject.setdefault(a["subject"], {})[a["variant"]] = a
     for subject, variants in sorted(by_subject.items()):
         if not ({"b", "c"} & set(variants)):
@@ -311,7 +385,7 @@ def comparison_table(avatars: list[dict], final: str, scale: str) -> Table:
     for row in PUBLISHED_TABLE2:
         table.add(source="published", data="INSTA, 256x256", **row)
     for a in avatars:
-        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a":
+        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             m, g = a["eval"]["all"]["model"], a["eval"]["all"]["gain"]["psnr"]
             table.add(source="this run", method=f"avatarlab ({final})", data=f"{a['subject']}, {scale}",
                       psnr=m["psnr"], ssim=m["ssim"], lpips=m.get("lpips"), st_lpips=m.get("st_lpips"),
@@ -393,7 +467,8 @@ def quality_figures(avatars: list[dict], final: str, folder: Path) -> list[Path]
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    finals = [a for a in avatars if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a"]
+    finals = [a for a in avatars if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a"
+              and a["seed"] == 0]
     colours = {s: f"C{i}" for i, s in enumerate(sorted({a["subject"] for a in avatars}))}
     written = []
     fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.8))
@@ -459,13 +534,13 @@ def build(results: Path, out: Path, final: str, scale: str) -> dict:
     avatars = load_avatars(results)
     finals, final_baselines = final_avatar_table(avatars, final)
     tables = [preprocessing_table(results), pretraining_table(results), renderer_table(results), finals,
-              final_baselines, alpha_table(avatars), beta_table(avatars), interp_table(avatars, final),
+              final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), applications_table(results), speech_table(results, scale)]
     for table in tables:
         table.write(tables_dir)
     figures = quality_figures(avatars, final, figures_dir) if avatars else []
     for a in avatars:
-        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a":
+        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             figures.append(copy_figure(a["dir"] / "test_frames.png", figures_dir / f"test_frames_{a['subject']}.png"))
     for path in sorted(results.glob("apps/*/*.png")):
         figures.append(copy_figure(path, figures_dir / f"{path.parent.name}_{path.name}"))

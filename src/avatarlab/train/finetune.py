@@ -74,9 +74,10 @@ def finetune_avatar(cfg, device):
     resume = checkpoint.load()
     if resume is None:  # a fresh run: no snapshot of an earlier run may join this one's curve
         shutil.rmtree(out_dir / "snapshots", ignore_errors=True)
-    run_name = f"{ft.subject}/{ft.init_name}" + ("" if ft.frames_variant == "a" else f"/frames_{ft.frames_variant}")
+    run_name = (f"{ft.subject}/{ft.init_name}" + ("" if ft.frames_variant == "a" else f"/frames_{ft.frames_variant}")
+                + (f"/seed{cfg.seed}" if int(cfg.seed) else ""))
     tags = {"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "renderer": parent["spec"]["renderer"],
-            "frames_variant": ft.frames_variant}
+            "frames_variant": ft.frames_variant, "seed": int(cfg.seed)}
     with start_run(cfg, "finetune", run_name, tags, run_id=(resume or {}).get("run_id"), output=out_dir) as run:
         run_id = run.info.run_id if run is not None else None
         if run is not None and resume is None:

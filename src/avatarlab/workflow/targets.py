@@ -5,6 +5,7 @@
     results/<scale>/avatars/<subject>/<recipe>/<init>/{model.pt,train.json,eval.json}
         recipe: final (every subject's avatar, from the final recipe's model) | base (the ablation fine-tunes:
         the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>)
+        <init>_seed<k>: the same run with seed k (k = 1 .. seeds-1; seed 0 is the plain folder)
     results/<scale>/apps/<subject>/...   results/<scale>/speech/...   results/<scale>/report/...
 """
 from __future__ import annotations
@@ -42,6 +43,7 @@ class Plan:
         self.pretrained = self.alphas + [f"{b}_from_{a}" for b in self.betas for a in self.alphas]
         self.final_recipe = config["final_recipe"]
         self.ablation_subjects = [s for s in config.get("ablation_subjects", []) if s in self.subjects]
+        self.seeds = int(config.get("seeds", 1))
         self.interp_subjects = [s for s in config.get("interp_subjects", []) if s in self.subjects]
         self.transfers = [(t["avatar"], t["source"]) for t in config.get("transfers", [])
                           if t["avatar"] in self.subjects and t["source"] in self.subjects]
@@ -88,6 +90,10 @@ class Plan:
     def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
         return f"{self.results}/avatars/{subject}/{recipe}/{init}"
 
+    def seeded(self, init: str) -> list[str]:
+        """The folder names of an avatar's seeded repeats: <init> (seed 0), <init>_seed1, ..."""
+        return [init] + [f"{init}_seed{k}" for k in range(1, self.seeds)]
+
     def final_avatar(self, subject: str) -> str:
         return f"{self.avatar_dir(subject, 'final', self.final_recipe)}/model.pt"
 
@@ -107,11 +113,13 @@ class Plan:
         the interpolation variants (base recipe; variant a is the plain base avatar of the same initialisation)."""
         outputs = []
         for subject in self.subjects:
-            outputs.append(f"{self.avatar_dir(subject, 'final', self.final_recipe)}/eval.json")
+            outputs += [f"{self.avatar_dir(subject, 'final', name)}/eval.json" for name in self.seeded(self.final_recipe)]
             outputs += [f"{self.results}/apps/{subject}/novel_views.png",
                         f"{self.results}/apps/{subject}/telepresence.json"]
         for subject in self.ablation_subjects:
             outputs += [f"{self.avatar_dir(subject, 'base', init)}/eval.json" for init in self.pretrained]
+            outputs += [f"{self.avatar_dir(subject, 'base', name)}/eval.json" for init in self.alphas
+                        for name in self.seeded(init)]
         for subject in self.interp_subjects:
             outputs += [f"{self.avatar_dir(subject, 'base', self.final_recipe + v)}/eval.json"
                         for v in ("", "_framesb", "_framesc")]

@@ -1,0 +1,71 @@
+"""The report's statistics: means with 95 % CIs over seeds, paired alpha1/alpha2 differences and the noise verdicts,
+from eval.json files laid out as the workflow writes them."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from avatarlab.evaluate.report import build
+from avatarlab.evaluate.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
+
+
+def test_mean_ci_is_students_t():
+    mean, half, n = mean_ci([1.0, 2.0, 3.0])
+    assert (mean, n) == (2.0, 3)
+    assert half == pytest.approx(4.302653 * 1.0 / math.sqrt(3), rel=1e-5)  # t(0.975, 2) * sd / sqrt(n)
+    assert mean_ci([5.0]) == (5.0, None, 1) and mean_ci([]) == (None, None, 0)
+
+
+def test_paired_difference_verdicts():
+    a = {0: 20.0, 1: 21.0, 2: 22.0}
+    assert paired_difference(a, {k: v + 1.0 + 0.01 * k for k, v in a.items()})["exceeds_noise"] is True
+    within = paired_difference(a, {0: 20.5, 1: 20.6, 2: 22.1})  # differences +0.5, -0.4, +0.1
+    assert within["exceeds_noise"] is False and within["verdict"] == "within the seed-to-seed noise"
+    assert paired_difference({0: 1.0}, {0: 2.0})["exceeds_noise"] is None
+
+
+def test_pooled_sd_and_single_run_threshold():
+    sd, dof = pooled_sd([[1.0, 3.0], [10.0, 10.0, 10.0], [7.0]])
+    assert dof == 3 and sd == pytest.approx(math.sqrt(2.0 / 3))
+    assert single_run_threshold(1.0) == pytest.approx(2.7719, abs=1e-3) and single_run_threshold(None) is None
+
+
+def write_avatar(results, subject, recipe, folder, init, psnr, seed_note=""):
+    d = results / "avatars" / subject / recipe / folder
+    d.mkdir(parents=True)
+    part = {"frames": 6, "model": {"psnr": psnr, "ssim": 0.8, "st_lpips": 0.3},
+            "baselines": {"last_frame": {"psnr": 25.0, "ssim": 0.85, "st_lpips": 0.2}},
+            "gain": {"psnr": {"best_baseline": "last_frame", "baseline": 25.0, "gain": psnr - 25.0,
+                              "beats": psnr > 25.0}}}
+    (d / "eval.json").write_text(json.dumps({"init": init, "frames_variant": "a", "all": part, "mouth_open": part,
+                                             "split": "last_frames", "render_seconds_per_frame": 0.01, "curve": []}))
+    (d / "train.json").write_text(json.dumps({"train_seconds": 10.0, "iterations": 5}))
+
+
+def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
+    results = tmp_path / "results"
+    final = "beta6_from_alpha2"
+    for k, (a1, a2, f) in enumerate([(26.0, 27.0, 26.5), (26.2, 27.1, 26.7), (25.9, 27.05, 26.3)]):
+        suffix = f"_seed{k}" if k else ""
+        write_avatar(results, "synth_talk", "base", f"alpha1{suffix}", "alpha1", a1)
+        write_avatar(results, "synth_talk", "base", f"alpha2{suffix}", "alpha2", a2)
+        write_avatar(results, "synth_talk", "final", f"{final}{suffix}", final, f)
+    for i, psnr in enumerate([26.0, 26.05, 24.0]):
+        write_avatar(results, "synth_talk", "base", f"beta{i + 1}_from_alpha1", f"beta{i + 1}_from_alpha1", psnr)
+    write_avatar(results, "synth_talk", "base", final, final, 26.1)
+    out = tmp_path / "report"
+    summary = build(results, out, final, "smoke")
+    assert summary["rows"]["final_avatars"] == 1 and summary["rows"]["alpha1_vs_alpha2"] == 4
+    finals = (out / "tables" / "final_avatars.csv").read_text().splitlines()
+    header, row = finals[0].split(","), dict(zip(finals[0].split(","), finals[1].split(",")))
+    assert "psnr_ci95" in header and row["seeds"] == "3"
+    assert float(row["psnr"]) == pytest.approx(26.5) and float(row["psnr_ci95"]) == pytest.approx(
+        4.302653 * 0.2 / math.sqrt(3), rel=1e-4)
+    paired = (out / "tables" / "alpha_paired.md").read_text()
+    assert "| synth_talk | all | psnr | 3 | 1.0167 |" in paired and "exceeds the seed-to-seed noise" in paired
+    beta = (out / "tables" / "beta_ablation.csv").read_text()
+    assert "no (within noise)" in beta and ",yes" in beta  # 0.05 dB apart vs 2.0 dB below the best
+    readme = (out / "README.md").read_text()
+    assert "alpha2 minus alpha1, paired by seed" in readme
