@@ -186,8 +186,9 @@ def test_applications_and_speech_stage(smoke_run):
 def test_report(smoke_run):
     report = smoke_run / "smoke" / "report"
     summary = json.loads((report / "summary.json").read_text())
-    assert summary["avatars"] == 21
+    assert summary["avatars"] == 21 + 8  # + seeds 1, 2 of the two final avatars and of alpha1 / alpha2
     rows = summary["rows"]
+    assert rows["alpha_paired"] >= 4  # alpha2 - alpha1 paired by seed: PSNR and SSIM (+ ST-LPIPS), two subsets
     assert rows["pretraining"] == 14 and rows["renderer_experiment"] == 2 and rows["final_avatars"] == 2
     assert rows["beta_ablation"] == 12 and rows["alpha1_vs_alpha2"] == 4 and rows["interpolation"] == 6
     assert rows["table2_comparison"] == 5 + 2 and rows["final_avatar_baselines"] == 2 * 4
@@ -203,8 +204,39 @@ def test_report(smoke_run):
     ours = [r for r in rows if r["source"] == "this run"]
     assert {r["data"] for r in ours} == {"synth_talk, smoke", "synth_turns, smoke"}
     assert all(r["lpips"] == "" and r["best_baseline_psnr"] for r in ours)
+    with open(report / "tables/final_avatars.csv") as f:
+        finals = list(csv.DictReader(f))
+    assert {r["seeds"] for r in finals} == {"3"} and all(float(r["psnr_ci95"]) > 0 for r in finals)
     text = (report / "README.md").read_text()
     assert "missing" in text and ("do NOT beat their best trivial baseline" in text or "beats its best" in text)
+    assert "seed-to-seed noise" in text
+
+
+@pytest.mark.slow
+def test_a_sweep_runs_as_workflow_jobs_and_ends_in_a_table(smoke_run, workdir):
+    """`snakemake sweep_finetune_lr`: 9 points (3 learning rates x 3 seeds) as fine-tuning + evaluation jobs on the
+    finished run's pretrained model, a table and a figure, an MLflow run per point tagged sweep/point; a second call
+    has nothing to do."""
+    import mlflow
+
+    from avatarlab.workflow.sweeps import load_sweeps
+
+    out = snakemake(workdir, "sweep_finetune_lr")
+    assert "sweep_finetune" in out.stdout + out.stderr
+    folder = smoke_run / "smoke" / "sweeps" / "finetune_lr"
+    with open(folder / "table.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["finetune.lr"] for r in rows] == ["0.0001", "0.0003", "0.001"] and {r["seeds"] for r in rows} == {"3"}
+    assert sum(r["differs_from_best"] == "best" for r in rows) == 1 and all(r["psnr_ci95"] for r in rows)
+    figure = np.asarray(Image.open(folder / "figure.png").convert("L"), dtype=float)
+    assert figure.std() > 5
+    client = mlflow.tracking.MlflowClient(f"sqlite:///{smoke_run / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("avatarlab-smoke")
+    runs = client.search_runs([exp.experiment_id], "tags.sweep = 'finetune_lr'")
+    points = {p.name for p in load_sweeps()["finetune_lr"].points}
+    assert len(runs) == 9 and {r.data.tags["point"] for r in runs} == points
+    assert all(r.data.params["sweep.finetune.lr"] in ("0.0001", "0.0003", "0.001") for r in runs)
+    assert jobs_planned(snakemake(workdir, "-n", "sweep_finetune_lr")) == {}
 
 
 @pytest.mark.slow

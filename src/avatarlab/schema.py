@@ -139,6 +139,9 @@ class Tracking:
     enabled: bool
     experiment: str
     scale: str
+    sweep: Optional[str] = None
+    point: Optional[str] = None
+    point_overrides: Optional[str] = None
 
 
 @dataclass

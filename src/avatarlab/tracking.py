@@ -155,6 +155,8 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
     if output is not None:
         all_tags["output"] = str(Path(output).resolve())
     all_tags.update({k: str(v) for k, v in (tags or {}).items() if v is not None})
+    if tr.get("sweep"):
+        all_tags.update(sweep=str(tr.sweep), point=str(tr.point))
     existing = None
     if run_id:
         try:
@@ -168,6 +170,12 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
         run = mlflow.start_run(run_name=run_name, tags=all_tags)
         if output is not None:
             _retire_superseded(mlflow, experiment_id, all_tags["output"], run.info.run_id)
+        from omegaconf import OmegaConf
+
+        mlflow.log_dict(OmegaConf.to_container(cfg, resolve=True), "config.yaml")  # the step's resolved config
+        if tr.get("point_overrides"):
+            mlflow.log_params({f"sweep.{k}": v for k, _, v in
+                               (o.partition("=") for o in str(tr.point_overrides).split())})
     with run:
         yield run
 

@@ -59,3 +59,19 @@ def speech_audio():
     if config.get("speech_wav"):
         return {"speech.wav": config["speech_wav"]}
     return {"speech.say": config.get("speech_text", "bin blue at f two now")}
+
+
+# (sweeps.smk)
+def sweep_names(step):
+    """A wildcard constraint: the sweeps of one kind of step (never empty: an empty alternation would match '')."""
+    import re
+
+    names = [re.escape(n) for n, s in PLAN.sweeps.items() if s.step == step]
+    return "|".join(names) or "no-sweep-of-this-kind"
+
+
+# (sweeps.smk)
+def sweep_tags(wc):
+    """The MLflow tags of a sweep's point (values, not settings: a new tag reruns nothing)."""
+    point = PLAN.sweep_point(wc.sweep, wc.point)
+    return {"tracking.sweep": wc.sweep, "tracking.point": wc.point, "tracking.point_overrides": " ".join(point.overrides)}

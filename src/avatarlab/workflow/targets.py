@@ -7,12 +7,15 @@
         the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>)
         <init>_seed<k>: the same run with seed k (k = 1 .. seeds-1; seed 0 is the plain folder)
     results/<scale>/apps/<subject>/...   results/<scale>/speech/...   results/<scale>/report/...
+    results/<scale>/sweeps/<sweep>/{table.md,table.csv,figure.png}, <sweep>/<point>/{model.pt,train.json,eval.json}
 """
 from __future__ import annotations
 
 import glob
 import sys
 from pathlib import Path
+
+from avatarlab.workflow.sweeps import load_sweeps
 
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
 
@@ -50,6 +53,12 @@ class Plan:
         self.speech_models = sorted(p.stem for p in SPEECH_MODEL_DIR.glob("*.yaml"))
         self.speech_subjects = [s for s in config.get("speech_subjects", []) if s in self.subjects]
         self.grid_clips = sorted(glob.glob(config["grid_clips"])) if config.get("grid_clips") else []
+        self.sweeps = load_sweeps()
+        self.requested_sweeps = list(config.get("sweeps") or [])
+        unknown = [s for s in self.requested_sweeps if s not in self.sweeps]
+        if unknown:
+            raise ValueError(f"workflow config 'sweeps': no conf/sweep/{unknown[0]}.yaml (there are: "
+                             f"{', '.join(sorted(self.sweeps)) or 'none'})")
 
     # --- subjects -------------------------------------------------------------------------------------------------
     def subject_dir(self, subject: str) -> str:
@@ -131,6 +140,23 @@ class Plan:
         outputs += [f"{self.results}/speech/grid_eval.json"] if self.grid_clips else []
         return outputs + [f"{self.results}/speech/speak_{s}.mp4" for s in self.speech_subjects]
 
+    # --- sweeps ----------------------------------------------------------------------------------------------------
+    def sweep_dir(self, name: str) -> str:
+        return f"{self.results}/sweeps/{name}"
+
+    def sweep_point(self, name: str, point: str):
+        for p in self.sweeps[name].points:
+            if p.name == point:
+                return p
+        raise ValueError(f"sweep {name}: no point {point}")
+
+    def sweep_point_evals(self, name: str) -> list[str]:
+        return [f"{self.sweep_dir(name)}/{p.name}/eval.json" for p in self.sweeps[name].points]
+
+    def sweep_outputs(self, name: str) -> list[str]:
+        return [f"{self.sweep_dir(name)}/table.md", f"{self.sweep_dir(name)}/figure.png"]
+
     def final_outputs(self) -> list[str]:
         return (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
-                + self.speech_outputs() + [f"{self.results}/report/README.md"])
+                + self.speech_outputs() + [f"{self.results}/report/README.md"]
+                + [o for name in self.requested_sweeps for o in self.sweep_outputs(name)])

@@ -1,0 +1,121 @@
+"""A sweep's table and figure: one row per setting (the point without its seed) with the metric's mean and 95 % CI
+over seeds, the gain over the best trivial baseline, and whether the setting differs from the best one beyond the
+seed-to-seed noise; a figure of the metric against each swept value.
+
+`python -m avatarlab.evaluate.sweep_report --sweep conf/sweep/finetune_lr.yaml --dir results/tiny/sweeps/finetune_lr`
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from avatarlab.evaluate.report import Table
+from avatarlab.evaluate.scoring import LOWER_IS_BETTER
+from avatarlab.evaluate.seed_stats import mean_ci, pooled_sd, single_run_threshold
+from avatarlab.io import atomic_path
+from avatarlab.workflow.sweeps import SEED_KEY, Sweep, load_sweep
+
+log = logging.getLogger(__name__)
+
+
+def point_scores(sweep: Sweep, report: dict) -> tuple[float, float, str, float]:
+    """(metric, gain over the best baseline, best baseline's name, its value) of one point's eval.json."""
+    part = report["all"] if sweep.step == "finetune" else report
+    gain_key = sweep.metric if sweep.metric in part["gain"] else next(iter(part["gain"]))
+    g = part["gain"][gain_key]
+    return part["model"][sweep.metric], g["gain"], g["best_baseline"], g["baseline"]
+
+
+def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
+    by_setting: dict[tuple, list] = {}
+    for point in sweep.points:
+        report = json.loads((folder / point.name / "eval.json").read_text())
+        by_setting.setdefault(point.setting, []).append((point, *point_scores(sweep, report)))
+    swept = [k for k in sweep.keys if k != SEED_KEY]
+    sd, dof = pooled_sd([[s[1] for s in runs] for runs in by_setting.values()])
+    rows = []
+    for setting, runs in by_setting.items():
+        mean, ci, n = mean_ci(s[1] for s in runs)
+        gain, gain_ci, _ = mean_ci(s[2] for s in runs)
+        rows.append({**{k: v for k, v in setting}, "seeds": n, sweep.metric: mean, f"{sweep.metric}_ci95": ci,
+                     "gain": gain, "gain_ci95": gain_ci, "best_baseline": runs[0][3], "baseline": runs[0][4],
+                     "values": [s[1] for s in runs]})
+    lower = sweep.metric in LOWER_IS_BETTER
+    best = (min if lower else max)(rows, key=lambda r: r[sweep.metric])
+    threshold = single_run_threshold(sd)
+    for r in rows:  # how much worse than the best setting, in the metric's own direction
+        r["worse_than_best"] = (r[sweep.metric] - best[sweep.metric]) if lower else (best[sweep.metric] - r[sweep.metric])
+        if sd is None:
+            r["differs_from_best"] = None
+        else:  # two means of n and m seeds: the noise of their difference is sd * sqrt(1/n + 1/m)
+            limit = 1.96 * sd * ((1 / r["seeds"] + 1 / best["seeds"]) ** 0.5)
+            r["differs_from_best"] = ("best" if r is best else
+                                      "yes" if r["worse_than_best"] > limit else "no (within noise)")
+    columns = swept + ["seeds", sweep.metric, f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline",
+                       "baseline", "worse_than_best", "differs_from_best"]
+    note = (f"{sweep.description or sweep.name}. {len(sweep.points)} points ({sweep.step}); metric: test "
+            f"{sweep.metric} ({'lower' if lower else 'higher'} is better), mean over seeds with its 95 % CI (Student's "
+            "t); gain over the best trivial baseline on "
+            f"the same frames. differs_from_best: whether the gap to the best setting exceeds 1.96 x the "
+            f"seed-to-seed SD of a difference of means" + (f" (pooled SD {sd:.3f}, {dof} degrees of freedom)."
+                                                           if sd is not None else " (one seed per setting: no verdict)."))
+    if threshold is not None:
+        note += f" Two single runs differ beyond noise above {threshold:.2f}."
+    table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note)
+    for r in sorted(rows, key=lambda r: tuple(str(r[k]) for k in swept)):
+        table.add(**{k: (str(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()})
+    return table, rows
+
+
+def figure(sweep: Sweep, rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    swept = [k for k in sweep.keys if k != SEED_KEY] or ["point"]
+    fig, axes = plt.subplots(1, len(swept), figsize=(4.2 * len(swept), 3.4), squeeze=False)
+    for ax, key in zip(axes[0], swept):
+        groups: dict = {}
+        for r in rows:
+            groups.setdefault(str(r.get(key)), []).extend(r["values"])
+        labels = list(groups)
+        stats = [mean_ci(groups[k]) for k in labels]
+        x = range(len(labels))
+        ax.errorbar(list(x), [s[0] for s in stats], yerr=[s[1] or 0.0 for s in stats], fmt="o-", capsize=4)
+        for i, k in enumerate(labels):
+            ax.scatter([i] * len(groups[k]), groups[k], s=8, color="grey", alpha=0.6)
+        ax.axhline(rows[0]["baseline"], ls="--", lw=1, color="C3", label=f"best baseline ({rows[0]['best_baseline']})")
+        ax.set_xticks(list(x), labels, fontsize=8)
+        ax.set_xlabel(key)
+        ax.set_ylabel(f"test {sweep.metric}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"sweep {sweep.name}: mean over seeds, 95 % CI; grey: single runs", fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sweep", type=Path, required=True, help="conf/sweep/<name>.yaml")
+    parser.add_argument("--dir", type=Path, required=True, help="results/<scale>/sweeps/<name>")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sweep = load_sweep(args.sweep)
+    table, rows = summarise(sweep, args.dir)
+    for suffix, text in ((".md", table.markdown()), (".csv", table.csv())):
+        with atomic_path(args.dir / f"table{suffix}") as tmp:
+            tmp.write_text(text)
+    figure(sweep, rows, args.dir / "figure.png")
+    log.info("sweep %s: %d settings -> %s", sweep.name, len(rows), args.dir)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,73 @@
+"""Sweeps: expansion in Hydra's override grammar, checked sweep files, and the sweep table's statistics."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from avatarlab.errors import ConfigError
+from avatarlab.evaluate.sweep_report import summarise
+from avatarlab.workflow.sweeps import expand, load_sweep, load_sweeps
+
+
+def test_expansion_is_hydras_grammar_and_cartesian_product():
+    points = expand({"finetune.lr": "1e-4,3e-4", "seed": "range(3)"})
+    assert [p.overrides for p in points][:2] == [("finetune.lr=0.0001", "seed=0"), ("finetune.lr=0.0001", "seed=1")]
+    assert len(points) == 6 and len({p.name for p in points}) == 6
+    assert points[4].values == {"finetune.lr": 0.0003, "seed": 1} and points[4].seed == 1
+    assert points[0].setting == points[2].setting != points[3].setting  # seeds of one setting share it
+    choice = expand({"model.renderer": "choice(proposed,baseline)"})
+    assert [p.overrides for p in choice] == [("model.renderer=proposed",), ("model.renderer=baseline",)]
+    lists = expand({"synthetic.neck_deg": "[15,20,10],[60,45,40]"})
+    assert [p.values["synthetic.neck_deg"] for p in lists] == [[15, 20, 10], [60, 45, 40]]
+    assert [p.name for p in lists] == ["neck_deg-15-20-10", "neck_deg-60-45-40"]
+    assert [p.overrides for p in expand({"seed": "range(1,7,3)"})] == [("seed=1",), ("seed=4",)]
+
+
+def test_the_shipped_sweeps_load():
+    sweeps = load_sweeps()
+    assert {"finetune_lr", "beta4_pmax", "neck_range"} <= set(sweeps)
+    lr = sweeps["finetune_lr"]
+    assert lr.step == "finetune" and len(lr.points) == 9 and lr.subject == "synth_talk"
+    assert sweeps["beta4_pmax"].parent == "alpha1" and len(sweeps["beta4_pmax"].points) == 6
+
+
+@pytest.mark.parametrize("text, message", [
+    ("step: train\noverrides: {seed: range(2)}\n", "step must be one of"),
+    ("step: finetune\nsubject: s\noverrides: {seed: range(2)}\n", "a finetune sweep needs init"),
+    ("step: pretrain\nstrategy: alpha1\noverrides: {seed: 'range(2'}\n", "sweep overrides"),
+    ("step: pretrain\nstrategy: alpha1\n", "'overrides' must map"),
+])
+def test_a_bad_sweep_file_is_named_in_one_line(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_sweep(path)
+    assert str(err.value).startswith(str(path)) and message in str(err.value) and "\n" not in str(err.value)
+
+
+def fake_point(folder, name, psnr, st_lpips):
+    part = {"model": {"psnr": psnr, "st_lpips": st_lpips},
+            "gain": {"psnr": {"best_baseline": "last_frame", "baseline": 25.0, "gain": psnr - 25.0},
+                     "st_lpips": {"best_baseline": "last_frame", "baseline": 0.3, "gain": 0.3 - st_lpips}}}
+    (folder / name).mkdir(parents=True)
+    (folder / name / "eval.json").write_text(json.dumps({"all": part}))
+
+
+@pytest.mark.parametrize("metric", ["psnr", "st_lpips"])
+def test_sweep_table_orders_by_the_metrics_direction(tmp_path, metric):
+    spec = tmp_path / "lr.yaml"
+    spec.write_text(f"step: finetune\nsubject: s\ninit: alpha1\nmetric: {metric}\n"
+                    "overrides: {finetune.lr: '1e-4,1e-3', seed: range(3)}\n")
+    sweep = load_sweep(spec)
+    folder = tmp_path / "results"
+    for p in sweep.points:  # lr 1e-3: +2 dB and lower ST-LPIPS, with a 0.1 seed-to-seed wobble
+        good = p.values["finetune.lr"] == 1e-3
+        fake_point(folder, p.name, 26.0 + 2.0 * good + 0.1 * p.seed, 0.25 - 0.05 * good + 0.001 * p.seed)
+    table, rows = summarise(sweep, folder)
+    best = next(r for r in rows if r["differs_from_best"] == "best")
+    assert best["finetune.lr"] == 1e-3 and best["seeds"] == 3
+    other = next(r for r in rows if r is not best)
+    assert other["differs_from_best"] == "yes" and other["worse_than_best"] > 0
+    assert best[f"{metric}_ci95"] > 0
+    assert "lower is better" in table.note if metric == "st_lpips" else "higher is better" in table.note
