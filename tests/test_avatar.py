@@ -1,4 +1,5 @@
 import json
+import math
 
 import numpy as np
 import pytest
@@ -54,7 +55,15 @@ def test_too_few_frames_for_the_split_stop_with_the_file_named():
 
 def test_psnr_ssim_values():
     a = torch.full((1, 3, 32, 32), 0.5)
-    assert psnr(a + 0.1, a) == pytest.approx(20.0, abs=1e-3)
+    assert psnr(a + 0.1, a, max_value=1.0) == pytest.approx(20.0, abs=1e-3)
+    # eq. (10): MAX is the ground truth's largest value, per image, and the images' PSNRs are averaged
+    assert psnr(a + 0.1, a) == pytest.approx(20.0 + 20 * math.log10(0.5), abs=1e-3)
+    b = torch.stack([torch.full((3, 8, 8), 1.0), torch.full((3, 8, 8), 1.0)])
+    b[:, :, 0, 0] = 1.0
+    pred = b.clone()
+    pred[0] -= 0.1
+    pred[1] -= 0.01
+    assert psnr(pred, b) == pytest.approx((20.0 + 40.0) / 2, abs=1e-3)
     assert ssim(a, a) == pytest.approx(1.0, abs=1e-6)
 
 
