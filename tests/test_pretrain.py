@@ -300,7 +300,7 @@ def test_paper_scale_sizes_match_the_dissertation():
     s = compose_config(["scale=paper"]).scale
     assert (s.pretrain_alpha_iterations, s.pretrain_beta_iterations, s.pretrain_batch) == (310000, 2500, 64)
     assert (s.pretrain_image_size, s.pretrain_feature_size) == (256, 32)          # 32² feature map -> 256² image
-    assert (s.nerf_frequencies, s.nerf_depth, s.nerf_width, s.nerf_skip_layer) == (10, 8, 384, 4)
+    assert (s.nerf_frequencies, s.nerf_depth, s.nerf_width, s.nerf_skip_layer) == (10, 8, 384, 5)
     assert (s.nerf_feature_channels, s.nerf_samples) == (256, 64)
     assert list(s.synthetic_neck_deg) == [80, 60, 80]
     assert (s.renderer_experiment_iterations, s.renderer_experiment_image_size) == (30000, 128)

@@ -36,7 +36,7 @@ class CNeRFConfig:
     frequencies: int = 10
     depth: int = 8
     width: int = 384
-    skip_layer: int = 4  # the layer whose input is [hidden, PE(x), geometry code] again
+    skip_layer: int = 5  # the layer whose input is [hidden, PE(x), geometry code] again (after five layers)
     feature_channels: int = 256
     samples: int = 64
     coordinate_scale: float = 5.0  # world metres -> network units (the head spans about +-1)
