@@ -439,94 +439,126 @@ def comparison_table(avatars: list[dict], final: str, scale: str) -> Table:
     return table
 
 
+def _renderer_claim(results: Path) -> list[dict]:
+    renderer = read_json(results / "report" / "renderer_experiment.json")
+    if not renderer:
+        return []
+    ratio, holds = renderer.get("iteration_ratio"), renderer.get("claim_holds")
+    return [dict(claim="the proposed 2D renderer needs < 1/2 the iterations of HeadNeRF's", where="3.1, fig. 22",
+                 published="ratio > 2", this_run=f"ratio {ratio:.2f}" if ratio else "target not reached",
+                 baseline=f"target = baseline renderer's final {renderer['target_psnr']:.2f} dB",
+                 noise="one run per renderer",
+                 verdict={True: "reproduced", False: "not reproduced",
+                          None: "not testable: the target is not above the trivial predictors"}[holds])]
+
+
+def _pretrained_claims(results: Path) -> list[dict]:
+    rows = []
+    for name in ("alpha1", "alpha2"):
+        ev, tr = (read_json(results / "pretrain" / name / f) for f in ("eval.json", "train.json"))
+        if ev and tr:
+            m, g = ev["model"], ev["gain"]["psnr_head"]
+            reached = m["psnr"] >= 29.0 and g["gain"] > 0
+            rows.append(dict(claim=f"{name} renders match the head model's renders at ~30 dB PSNR", where="3.4",
+                             published="~30 dB", this_run=f"{m['psnr']:.2f} dB (head region {m['psnr_head']:.2f})",
+                             baseline=f"{g['best_baseline']} {g['baseline']:.2f} dB (head region)", noise="one run",
+                             verdict="reproduced" if reached else
+                             f"not reproduced at {tr['iterations']} of 310 000 iterations"))
+    return rows
+
+
+def _base_avatars(avatars: list[dict]) -> dict[tuple[str, str], dict]:
+    return {(a["subject"], a["init"]): a for a in avatars
+            if a["recipe"] == "base" and a["variant"] == "a" and a["seed"] == 0}
+
+
+def _alpha_family_claim(base: dict, threshold: float | None, noise: str) -> list[dict]:
+    pairs = [(a, base[(s, init.replace("_from_alpha1", "_from_alpha2"))]) for (s, init), a in base.items()
+             if init.endswith("_from_alpha1") and (s, init.replace("_from_alpha1", "_from_alpha2")) in base]
+    if not pairs:
+        return []
+    diffs = [two["eval"]["mouth_open"]["model"]["psnr"] - one["eval"]["mouth_open"]["model"]["psnr"]
+             for one, two in pairs]
+    wins = sum(d > 0 for d in diffs)
+    beyond = sum(abs(d) > threshold for d in diffs) if threshold is not None else None
+    verdict = ("not testable: no noise estimate" if beyond is None else
+               "within noise: no pair differs beyond the seed noise" if beyond == 0 else
+               "reproduced" if wins / len(diffs) >= 0.5 else "not reproduced")
+    return [dict(claim="beta avatars from alpha2 beat those from alpha1 in ~60 % of pairs (mouth-open frames)",
+                 where="4.2, figs. 39-42", published="~60 %",
+                 this_run=f"{wins}/{len(diffs)} pairs ({100 * wins / len(diffs):.0f} %), mean diff "
+                          f"{sum(diffs) / len(diffs):+.2f} dB", baseline="-",
+                 noise=noise + (f"; {beyond} pairs beyond it" if beyond is not None else ""), verdict=verdict)]
+
+
+def _final_recipe_claim(base: dict, final: str, threshold: float | None, noise: str) -> list[dict]:
+    betas = {init: a["eval"]["all"]["model"]["psnr"] for (s, init), a in base.items() if "_from_" in init}
+    if len(betas) < 2 or final not in betas:
+        return []
+    best = max(betas, key=betas.get)
+    runner = max(v for k, v in betas.items() if k != final)
+    if threshold is None:
+        verdict = "not testable: no noise estimate"
+    elif best == final:
+        verdict = "reproduced" if betas[final] - runner > threshold else "within noise: beta6 ties the best"
+    else:
+        verdict = "within noise: beta6 ties the best" if betas[best] - betas[final] <= threshold else "not reproduced"
+    rank = sorted(betas.values(), reverse=True).index(betas[final]) + 1
+    return [dict(claim=f"{final} (the final recipe) gives the best avatar", where="4.2", published=f"{final} best",
+                 this_run=f"{final} {betas[final]:.2f} dB; best {best} {betas[best]:.2f} dB (rank {rank} of "
+                          f"{len(betas)})", baseline="-", noise=noise, verdict=verdict)]
+
+
+def _interpolation_claim(avatars: list[dict], final: str, threshold: float | None, noise: str) -> list[dict]:
+    interp: dict[str, dict] = {}
+    for a in avatars:
+        if a["recipe"] == "base" and a["init"] == final and a["seed"] == 0 and a["variant"] in ("b", "c"):
+            interp.setdefault(a["subject"], {})[a["variant"]] = a["eval"]["all"]["model"]["psnr"]
+    gains_c = {s: v["c"] - v["b"] for s, v in interp.items() if {"b", "c"} <= set(v)}
+    if not gains_c:
+        return []
+    mean = sum(gains_c.values()) / len(gains_c)
+    verdict = ("not testable: no noise estimate" if threshold is None else "within noise" if abs(mean) <= threshold
+               else "reproduced" if mean > 0 else "not reproduced")
+    return [dict(claim="re-created frames (c) improve on dropped frames (b)", where="4.3, fig. 54",
+                 published=f"+{PUBLISHED_INTERP_GAIN_DB} dB",
+                 this_run=", ".join(f"{s} {g:+.2f} dB" for s, g in sorted(gains_c.items())), baseline="(b)",
+                 noise=noise, verdict=verdict)]
+
+
+def _untestable_claims(results: Path) -> list[dict]:
+    rows = []
+    rgbd = [r for r in (read_json(p) for p in sorted(results.glob("subjects/*/fit_rgbd.json"))) if r and
+            "accuracy_mm" in r]
+    if rgbd:
+        rows.append(dict(claim="RGBD fit accuracy sqrt(Loss3) ~0.2 mm on ZED2 captures", where="2.3",
+                         published="0.2 mm", this_run=", ".join(f"{r['accuracy_mm']:.2f} mm" for r in rgbd),
+                         baseline="-", noise=f"synthetic depth, noise {rgbd[0].get('depth_noise_m', 0) * 1000:.1f} mm",
+                         verdict="not testable: no ZED2 captures; synthetic depth with its own noise level"))
+    rows.append(dict(claim="table 2: the proposed method ranks first in PSNR and LPIPS among five",
+                     where="4.5, table 2", published="26.29 dB / 0.046", this_run="see table2_comparison",
+                     baseline="-", noise="-",
+                     verdict="not testable: the INSTA videos and the other four methods are not part of this run"))
+    return rows
+
+
 def claims_table(results: Path, avatars: list[dict], final: str, scale: str) -> Table:
     """Every quantitative claim of the dissertation beside this run's measurement, its baseline and the seed noise,
     with a verdict: reproduced / not reproduced / within noise / not testable here (and why)."""
     sd, dof = seed_noise(avatars)
     threshold = single_run_threshold(sd)
-    noise = f"seed SD {sd:.2f} dB ({dof} dof); single-run differences below {threshold:.2f} dB are noise" \
-        if sd is not None else "no seeded runs: no noise estimate"
+    noise = (f"seed SD {sd:.2f} dB ({dof} dof); single-run differences below {threshold:.2f} dB are noise"
+             if sd is not None else "no seeded runs: no noise estimate")
     table = Table("claims", "The dissertation's claims, measured by this run", ["claim", "where", "published",
                   "this_run", "baseline", "noise", "verdict"],
                   f"Scale '{scale}'. A claim is 'reproduced' only when this run's number is on the claimed side, beats "
                   "its trivial baselines and the difference it rests on exceeds the seed-to-seed noise; 'not testable' "
                   "says why this run cannot decide it.")
-    renderer = read_json(results / "report" / "renderer_experiment.json")
-    if renderer:
-        ratio, holds = renderer.get("iteration_ratio"), renderer.get("claim_holds")
-        table.add(claim="the proposed 2D renderer needs < 1/2 the iterations of HeadNeRF's", where="3.1, fig. 22",
-                  published="ratio > 2", this_run=f"ratio {ratio:.2f}" if ratio else "target not reached",
-                  baseline=f"target = baseline renderer's final {renderer['target_psnr']:.2f} dB",
-                  noise="one run per renderer",
-                  verdict={True: "reproduced", False: "not reproduced", None: "not testable: the target is not above "
-                           "the trivial predictors"}[holds])
-    for name in ("alpha1", "alpha2"):
-        ev, tr = read_json(results / "pretrain" / name / "eval.json"), read_json(results / "pretrain" / name /
-                                                                                 "train.json")
-        if ev and tr:
-            m, g = ev["model"], ev["gain"]["psnr_head"]
-            reached = m["psnr"] >= 29.0 and g["gain"] > 0
-            table.add(claim=f"{name} renders match the head model's renders at ~30 dB PSNR", where="3.4",
-                      published="~30 dB", this_run=f"{m['psnr']:.2f} dB (head region {m['psnr_head']:.2f})",
-                      baseline=f"{g['best_baseline']} {g['baseline']:.2f} dB (head region)", noise="one run",
-                      verdict="reproduced" if reached else
-                      f"not reproduced at {tr['iterations']} of 310 000 iterations")
-    base = {(a["subject"], a["init"]): a for a in avatars
-            if a["recipe"] == "base" and a["variant"] == "a" and a["seed"] == 0}
-    pairs = [(base[(s, f"{b}_from_alpha1")], base[(s, f"{b}_from_alpha2")]) for (s, init) in base
-             for b in [init.split("_from_")[0]] if init.endswith("_from_alpha1") and (s, f"{b}_from_alpha2") in base]
-    if pairs:
-        diffs = [two["eval"]["mouth_open"]["model"]["psnr"] - one["eval"]["mouth_open"]["model"]["psnr"]
-                 for one, two in pairs]
-        wins = sum(d > 0 for d in diffs)
-        beyond = sum(abs(d) > threshold for d in diffs) if threshold is not None else None
-        verdict = ("not testable: no noise estimate" if beyond is None else
-                   "within noise: no pair differs beyond the seed noise" if beyond == 0 else
-                   "reproduced" if wins / len(diffs) >= 0.5 else "not reproduced")
-        table.add(claim="beta avatars from alpha2 beat those from alpha1 in ~60 % of pairs (mouth-open frames)",
-                  where="4.2, figs. 39-42", published="~60 %",
-                  this_run=f"{wins}/{len(diffs)} pairs ({100 * wins / len(diffs):.0f} %), mean diff "
-                           f"{sum(diffs) / len(diffs):+.2f} dB",
-                  baseline="-", noise=noise + (f"; {beyond} pairs beyond it" if beyond is not None else ""),
-                  verdict=verdict)
-    betas = {init: a["eval"]["all"]["model"]["psnr"] for (s, init), a in base.items() if "_from_" in init}
-    if len(betas) > 1 and final in betas:
-        best = max(betas, key=betas.get)
-        gap = betas[best] - betas[final]
-        runner = max(v for k, v in betas.items() if k != final)
-        verdict = ("not testable: no noise estimate" if threshold is None else
-                   "reproduced" if best == final and betas[final] - runner > threshold else
-                   "within noise: beta6 ties the best" if gap <= threshold and (best != final or
-                                                                              betas[final] - runner <= threshold)
-                   else "not reproduced")
-        table.add(claim=f"{final} (the final recipe) gives the best avatar", where="4.2",
-                  published=f"{final} best", this_run=f"{final} {betas[final]:.2f} dB; best {best} {betas[best]:.2f}"
-                  f" dB (rank {sorted(betas.values(), reverse=True).index(betas[final]) + 1} of {len(betas)})",
-                  baseline="-", noise=noise, verdict=verdict)
-    interp = {}
-    for a in avatars:
-        if a["recipe"] == "base" and a["init"] == final and a["seed"] == 0 and a["variant"] in ("b", "c"):
-            interp.setdefault(a["subject"], {})[a["variant"]] = a["eval"]["all"]["model"]["psnr"]
-    gains_c = {s: v["c"] - v["b"] for s, v in interp.items() if {"b", "c"} <= set(v)}
-    if gains_c:
-        mean = sum(gains_c.values()) / len(gains_c)
-        verdict = ("not testable: no noise estimate" if threshold is None else
-                   "within noise" if abs(mean) <= threshold else
-                   "reproduced" if mean > 0 else "not reproduced")
-        table.add(claim="re-created frames (c) improve on dropped frames (b)", where="4.3, fig. 54",
-                  published=f"+{PUBLISHED_INTERP_GAIN_DB} dB", this_run=", ".join(
-                      f"{s} {g:+.2f} dB" for s, g in sorted(gains_c.items())), baseline="(b)", noise=noise,
-                  verdict=verdict)
-    rgbd = [read_json(p) for p in sorted(results.glob("subjects/*/fit_rgbd.json"))]
-    rgbd = [r for r in rgbd if r and "accuracy_mm" in r]
-    if rgbd:
-        table.add(claim="RGBD fit accuracy sqrt(Loss3) ~0.2 mm on ZED2 captures", where="2.3",
-                  published="0.2 mm", this_run=", ".join(f"{r['accuracy_mm']:.2f} mm" for r in rgbd),
-                  baseline="-", noise=f"synthetic depth, noise {rgbd[0].get('depth_noise_m', 0) * 1000:.1f} mm",
-                  verdict="not testable: no ZED2 captures; synthetic depth with its own noise level")
-    table.add(claim="table 2: the proposed method ranks first in PSNR and LPIPS among five", where="4.5, table 2",
-              published="26.29 dB / 0.046", this_run="see table2_comparison", baseline="-", noise="-",
-              verdict="not testable: the INSTA videos and the other four methods are not part of this run")
+    base = _base_avatars(avatars)
+    for row in (_renderer_claim(results) + _pretrained_claims(results) + _alpha_family_claim(base, threshold, noise)
+                + _final_recipe_claim(base, final, threshold, noise)
+                + _interpolation_claim(avatars, final, threshold, noise) + _untestable_claims(results)):
+        table.add(**row)
     return table
 
 
@@ -621,7 +653,8 @@ def quality_figures(avatars: list[dict], final: str, folder: Path) -> list[Path]
         ax.set_xlabel("fine-tuning time on this CPU (s)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7)
     fig.suptitle("quality vs creation time (dashed: each subject's best trivial baseline on the same frames)",
                  fontsize=9)
     fig.tight_layout()
