@@ -88,7 +88,7 @@ def pretrain_model(cfg, device):
             "frames": Path(pre.real_subject_dir) / "frames.json", "parent": pre.init_model if start else None}
     checkpoint = Checkpoint(out_dir / "checkpoint.pt", fingerprint(settings, code_digest(__spec__.name), data))
     resume = checkpoint.load()
-    tags = {"strategy": name, "renderer": cfg.model.renderer, "init": strategy.init or ""}
+    tags = {"strategy": name, "renderer": cfg.model.renderer, "init": strategy.init or "", "seed": int(cfg.seed)}
     with start_run(cfg, "pretrain", name, tags, run_id=(resume or {}).get("run_id"), output=out_dir) as run:
         run_id = run.info.run_id if run is not None else None
         if run is not None and resume is None:
