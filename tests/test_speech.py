@@ -96,6 +96,24 @@ def test_lstm_model_loss_and_regulariser(head_model):
     assert good["reg"] == pytest.approx(0, abs=1e-6) and bad["reg"] == pytest.approx(1, abs=1e-6)
 
 
+def test_seed_000_without_regularisation_has_no_phoneme_module(head_model):
+    """Seed 000's baseline: no phoneme classifier at all (not the classifier with lambda2 = 0)."""
+    from helpers import REPO
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        noreg = compose(config_name="config", overrides=["speech_model=lstm_noreg"]).speech
+        reg = compose(config_name="config", overrides=["speech_model=lstm_reg"]).speech
+    assert (noreg.phoneme_head, noreg.regularize, reg.phoneme_head, reg.regularize) == (False, False, True, True)
+    basis = viseme_basis(head_model)
+    model = AudioToVisemes(65, len(NAMES), len(PHONEMES), basis, channels=8, hidden=16, phoneme_head=False)
+    assert model.phonemes is None and not any(n.startswith("phonemes") for n, _ in model.named_parameters())
+    weights, logits, landmarks, _ = model(torch.randn(1, 4, 25, 65))
+    assert logits is None and landmarks.shape == (1, 4, 68, 2)
+    loss, parts = speech_loss(weights, None, landmarks, landmarks + 0.01, None, phoneme_to_viseme_matrix(), 0.1, 0.1)
+    assert parts["ce"] == 0.0 and parts["reg"] == 0.0 and float(loss) == pytest.approx(2 * 0.01**2, rel=1e-4)
+
+
 def test_window_model_averages_overlapping_outputs():
     model = PhonemeWindowMLP(n_phonemes=5, n_outputs=3, k_x=11, k_y=5, hidden=16, dropout=0.0)
     labels = torch.tensor([0, 1, 2, 3, 4, 0, 1])

@@ -257,6 +257,7 @@ class Speech:
     name: str
     model: str = one_of("lstm", "window")
     regularize: bool = MISSING
+    phoneme_head: bool = MISSING
     sample_rate: int = at_least(1000)
     coarticulation_frames: float = at_least(0)
     landmark_noise_m: float = at_least(0)

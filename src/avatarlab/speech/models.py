@@ -19,7 +19,7 @@ from avatarlab.safe_load import load_tensors
 
 class AudioToVisemes(nn.Module):
     def __init__(self, n_features: int, n_visemes: int, n_phonemes: int, basis: torch.Tensor, channels: int = 64,
-                 hidden: int = 128):
+                 hidden: int = 128, phoneme_head: bool = True):
         super().__init__()
         self.encoder = nn.Sequential(
             nn.Conv1d(n_features, channels, 3, padding=1), nn.BatchNorm1d(channels), nn.ReLU(),
@@ -28,19 +28,22 @@ class AudioToVisemes(nn.Module):
             nn.AdaptiveAvgPool1d(1))
         self.lstm = nn.LSTM(channels, hidden, batch_first=True)
         self.visemes = nn.Linear(hidden, n_visemes)
-        self.phonemes = nn.Linear(hidden, n_phonemes)
+        # seed 000 without its regulariser has no phoneme module: then the logits are None
+        self.phonemes = nn.Linear(hidden, n_phonemes) if phoneme_head else None
         self.register_buffer("basis", basis.reshape(basis.shape[0], -1))  # (n_visemes, 136): Pr(B_j), row 0 = B0
         self.register_buffer("mean", torch.zeros(n_features))
         self.register_buffer("std", torch.ones(n_features))
 
     def forward(self, windows: torch.Tensor, state=None):
-        """windows (B, T, W, F) -> viseme weights (B, T, K), phoneme logits (B, T, P), landmarks (B, T, 68, 2)."""
+        """windows (B, T, W, F) -> viseme weights (B, T, K), phoneme logits (B, T, P) or None (no phoneme module),
+        landmarks (B, T, 68, 2), LSTM state."""
         b, t, w, f = windows.shape
         x = ((windows - self.mean) / self.std).reshape(b * t, w, f).transpose(1, 2)
         h = self.encoder(x).reshape(b, t, -1)
         h, state = self.lstm(h, state)
         weights = torch.softmax(self.visemes(h), -1)
-        return weights, self.phonemes(h), self.landmarks(weights), state
+        logits = self.phonemes(h) if self.phonemes is not None else None
+        return weights, logits, self.landmarks(weights), state
 
     def landmarks(self, weights: torch.Tensor) -> torch.Tensor:
         b0 = self.basis[0]
@@ -59,6 +62,8 @@ def speech_loss(weights, logits, landmarks, target_landmarks, target_phonemes, p
     """L = L_land + lambda1 CE(phonemes) + lambda2 (1/T) sum_t sum_k a_tk (1 - p_tk), p_tk = P(viseme k) from the
     phoneme probabilities: the weights may only use visemes the phoneme head finds likely (seed 000's regulariser)."""
     land = ((landmarks - target_landmarks) ** 2).sum(-1).mean()
+    if logits is None:  # no phoneme module: the landmark term alone
+        return land, {"landmarks": float(land.detach()), "ce": 0.0, "reg": 0.0}
     ce = nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), target_phonemes.reshape(-1))
     reg = phoneme_regularizer(weights, logits, phoneme_to_viseme)
     total = land + lambda1 * ce + lambda2 * reg
@@ -112,6 +117,6 @@ def load_speech_model(path: str | Path, head, device: torch.device | str = "cpu"
     if not isinstance(state, dict) or state.get("kind") != "lstm":
         raise ValueError(f"{path}: audio animation needs the seed-000 (lstm) model, this is {state.get('kind')!r}")
     model = AudioToVisemes(state["n_features"], len(NAMES), len(PHONEMES), viseme_basis(head), state["channels"],
-                           state["hidden"])
+                           state["hidden"], bool(state.get("phoneme_head", True)))
     model.load_state_dict(state["model"])
     return model.eval().to(device)
