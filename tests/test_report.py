@@ -67,6 +67,10 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
     assert "| synth_talk | all | psnr | 3 | 1.0167 |" in paired and "exceeds the seed-to-seed noise" in paired
     beta = (out / "tables" / "beta_ablation.csv").read_text()
     assert "no (within noise)" in beta and ",yes" in beta  # 0.05 dB apart vs 2.0 dB below the best
+    stage2 = (out / "tables" / "stage2_comparisons.csv").read_text()
+    # beta3 (24.0) vs beta1 (26.0) from alpha1: -2 dB, beyond the noise; beta1 vs alpha1 (seed 0: 26.0): 0, within
+    assert "synthetic share 0.25 (beta3 vs beta1),-2.0,-2.0,worse" in stage2
+    assert "continuing on real images (beta1 vs its alpha),0.0,0.0,within noise" in stage2
     readme = (out / "README.md").read_text()
     assert "alpha2 minus alpha1, paired by seed" in readme
     claims = (out / "tables" / "claims.md").read_text()

@@ -375,7 +375,8 @@ def beta_table(avatars: list[dict]) -> Table:
     sd, dof = seed_noise(avatars)
     threshold = single_run_threshold(sd)
     table = Table("beta_ablation", "Avatars fine-tuned (base recipe) from beta1-beta6 continued from alpha1 / alpha2 "
-                  "(dissertation figures 39-42)", AVATAR_COLUMNS + ["below_best_db", "differs_from_best"],
+                  "(dissertation figures 39-42)",
+                  AVATAR_COLUMNS + ["mouth_open_psnr", "below_best_db", "differs_from_best"],
                   "beta1: real only; beta2: + z-augmentation; beta3: p=0.25; beta4: p 0.25->0; beta5: beta3 + z-aug; "
                   "beta6: beta4 + z-aug (the final recipe, from alpha2). One seed each: below_best_db = the best "
                   "beta's PSNR (same subject) minus this row's; differs_from_best says whether that exceeds the "
@@ -390,8 +391,49 @@ def beta_table(avatars: list[dict]) -> Table:
         if a["subject"] in ablated:  # subjects with the beta ablation (not a lone avatar of another experiment)
             below = best[a["subject"]] - a["eval"]["all"]["model"]["psnr"]
             differs = None if threshold is None else ("yes" if below > threshold else "no (within noise)")
-            table.add(**avatar_row(a), below_best_db=below, differs_from_best=differs)
+            table.add(**avatar_row(a), mouth_open_psnr=a["eval"]["mouth_open"]["model"]["psnr"], below_best_db=below,
+                      differs_from_best=differs)
     table.note += " " + not_beating(table, ("subject", "init"))
+    return table
+
+
+#: the stage-2 comparisons of figures 44-47: (label, treated, control) per alpha family
+STAGE2_PAIRS = [("z-augmentation (beta2 vs beta1)", "beta2", "beta1"),
+                ("z-augmentation (beta5 vs beta3)", "beta5", "beta3"),
+                ("z-augmentation (beta6 vs beta4)", "beta6", "beta4"),
+                ("synthetic share 0.25 (beta3 vs beta1)", "beta3", "beta1"),
+                ("decaying share 0.25->0 (beta4 vs beta1)", "beta4", "beta1"),
+                ("decaying vs constant share (beta4 vs beta3)", "beta4", "beta3"),
+                ("continuing on real images (beta1 vs its alpha)", "beta1", "alpha")]
+
+
+def stage2_table(avatars: list[dict]) -> Table:
+    """Figures 44-47's pairs (z-augmentation, the schedule, continuing on real images) as differences of test PSNR
+    on all and mouth-open frames, each with the verdict against the seed-to-seed noise."""
+    sd, _ = seed_noise(avatars)
+    threshold = single_run_threshold(sd)
+    table = Table("stage2_comparisons", "Stage-2 comparisons (dissertation figures 44-47): treated minus control, "
+                  "avatars fine-tuned with the base recipe", ["subject", "family", "comparison", "all_diff_db",
+                                                              "mouth_open_diff_db", "verdict"],
+                  "One seed per model: a difference counts only above " +
+                  (f"{threshold:.2f} dB (1.96 x sqrt(2) x the pooled seed-to-seed SD)." if threshold is not None
+                   else "the seed noise, which this run did not measure (no verdict)."))
+    runs = {(a["subject"], a["init"]): a["eval"] for a in avatars
+            if a["recipe"] == "base" and a["variant"] == "a" and a["seed"] == 0}
+    for subject in sorted({s for s, _ in runs}):
+        for alpha in ("alpha1", "alpha2"):
+            for label, treated, control in STAGE2_PAIRS:
+                t_name = f"{treated}_from_{alpha}"
+                c_name = alpha if control == "alpha" else f"{control}_from_{alpha}"
+                if (subject, t_name) not in runs or (subject, c_name) not in runs:
+                    continue
+                t, c = runs[(subject, t_name)], runs[(subject, c_name)]
+                diff = t["all"]["model"]["psnr"] - c["all"]["model"]["psnr"]
+                mouth = t["mouth_open"]["model"]["psnr"] - c["mouth_open"]["model"]["psnr"]
+                verdict = (None if threshold is None else
+                           "within noise" if abs(diff) <= threshold else ("better" if diff > 0 else "worse"))
+                table.add(subject=subject, family=alpha, comparison=label, all_diff_db=diff, mouth_open_diff_db=mouth,
+                          verdict=verdict)
     return table
 
 
@@ -706,7 +748,8 @@ def build(results: Path, out: Path, final: str, scale: str) -> dict:
     avatars = load_avatars(results)
     finals, final_baselines = final_avatar_table(avatars, final)
     tables = [preprocessing_table(results), pretraining_table(results), renderer_table(results), finals,
-              final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars), interp_table(avatars, final),
+              final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
+              stage2_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), claims_table(results, avatars, final, scale),
               applications_table(results), speech_table(results, scale), substitutions_table()]
     for table in tables:
