@@ -78,7 +78,7 @@ def avatar(subject, recipe, init, variant, psnr, best=20.0, lpips=None, seconds=
     part = {"frames": 3, "model": scores, "baselines": base,
             "gain": {"psnr": {"best_baseline": "last_frame", "baseline": best, "gain": psnr - best,
                               "beats": psnr > best}}}
-    return {"subject": subject, "recipe": recipe, "init": init, "variant": variant,
+    return {"subject": subject, "recipe": recipe, "init": init, "variant": variant, "seed": 0,
             "train": {"train_seconds": seconds},
             "eval": {"all": part, "mouth_open": part, "render_seconds_per_frame": 0.01, "frames_variant": variant}}
 
