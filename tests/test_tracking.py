@@ -1,0 +1,77 @@
+"""MLflow bookkeeping: runs left RUNNING by a killed process become KILLED, a resumed step continues its own run,
+and a rerun of a step leaves one run per output."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from omegaconf import OmegaConf
+
+
+@pytest.fixture
+def store(tmp_path):
+    saved = os.environ.pop("MLFLOW_TRACKING_URI", None)
+    from avatarlab.tracking import init_store
+
+    results = tmp_path / "results"
+    init_store(results, scales=("smoke",))
+    cfg = OmegaConf.create({"paths": {"results": str(results)},
+                            "tracking": {"enabled": True, "experiment": "avatarlab-smoke", "scale": "smoke"}})
+    yield results, cfg
+    os.environ.pop("MLFLOW_TRACKING_URI", None)
+    if saved is not None:
+        os.environ["MLFLOW_TRACKING_URI"] = saved
+
+
+def client(results):
+    from mlflow.tracking import MlflowClient
+
+    return MlflowClient(f"sqlite:///{results / 'mlflow.db'}")
+
+
+def runs_of(results, filter_string=""):
+    c = client(results)
+    exp = c.get_experiment_by_name("avatarlab-smoke")
+    return c.search_runs([exp.experiment_id], filter_string, run_view_type=1)  # active runs only
+
+
+def test_a_run_killed_with_kill_9_is_marked_killed_by_the_next_start(store, tmp_path):
+    results, _ = store
+    script = tmp_path / "killed.py"
+    script.write_text(
+        "import os, sys\nfrom omegaconf import OmegaConf\nfrom avatarlab.tracking import start_run\n"
+        f"cfg = OmegaConf.create({{'paths': {{'results': {str(results)!r}}}, 'tracking': {{'enabled': True, "
+        "'experiment': 'avatarlab-smoke', 'scale': 'smoke'}})\n"
+        "with start_run(cfg, 'pretrain', 'doomed'):\n    os.kill(os.getpid(), 9)\n")
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    proc = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -9
+    (doomed,) = runs_of(results, "attributes.run_name = 'doomed'")
+    assert doomed.info.status == "RUNNING"
+    from avatarlab.tracking import init_store
+
+    init_store(results, scales=("smoke",))
+    assert client(results).get_run(doomed.info.run_id).info.status == "KILLED"
+
+
+def test_a_resumed_step_continues_its_run_and_a_rerun_leaves_one_run(store, tmp_path):
+    import mlflow
+
+    from avatarlab.tracking import start_run
+
+    results, cfg = store
+    out = tmp_path / "results" / "smoke" / "pretrain" / "alpha1"
+    with start_run(cfg, "pretrain", "alpha1", output=out) as run:
+        first = run.info.run_id
+        mlflow.log_metric("loss", 1.0, step=1)
+    with start_run(cfg, "pretrain", "alpha1", run_id=first, output=out) as run:  # resumed after a kill
+        assert run.info.run_id == first
+        mlflow.log_metric("loss", 0.5, step=2)
+    assert [m.step for m in client(results).get_metric_history(first, "loss")] == [1, 2]
+    with start_run(cfg, "pretrain", "alpha1", output=out) as run:  # a rerun (code edit, --forcerun)
+        second = run.info.run_id
+    left = runs_of(results, f"tags.output = '{out.resolve()}'")
+    assert [r.info.run_id for r in left] == [second] and second != first
+    assert client(results).get_run(second).data.tags["stage"] == "pretrain"
