@@ -20,7 +20,10 @@ PRETRAINED = ["alpha1", "alpha2"] + [f"beta{i}_from_{a}" for i in range(1, 7) fo
 
 
 def snakemake(workdir: Path, *args: str, check=True, **kw):
-    return run_snakemake(workdir, "--cores", "2", "--config", "scale=smoke", "threads_per_job=1", *args,
+    """Targets and options as given; `key=value` arguments join the --config entries (scale=smoke, one thread)."""
+    config = [a for a in args if "=" in a and not a.startswith("-")]
+    other = [a for a in args if a not in config]
+    return run_snakemake(workdir, "--cores", "2", *other, "--config", "scale=smoke", "threads_per_job=1", *config,
                          check=check, **kw)
 
 
@@ -156,7 +159,9 @@ def test_avatar_stage(smoke_run):
 
     mlflow.set_tracking_uri(f"sqlite:///{smoke_run.resolve() / 'mlflow.db'}")
     finetune = mlflow.search_runs(experiment_names=["avatarlab-smoke"], filter_string="tags.stage = 'finetune'")
-    assert sorted(finetune["tags.subject"]) == ["synth_talk"] * 17 + ["synth_turns"] * 4
+    # 17 fine-tunes of synth_talk + seeds 1, 2 of alpha1, alpha2 and of the final recipe; synth_turns: 4 + 2
+    assert sorted(finetune["tags.subject"]) == ["synth_talk"] * (17 + 4 + 2) + ["synth_turns"] * (4 + 2)
+    assert sorted(finetune["tags.seed"].astype(int)) == [0] * 21 + [1] * 4 + [2] * 4
     assert set(finetune["tags.recipe"]) == {"base", "final"} and "metrics.test_all_gain_psnr" in finetune.columns
     assert finetune["artifact_uri"].str.startswith((smoke_run / "mlartifacts").resolve().as_uri()).all()
 

@@ -12,7 +12,7 @@ from avatarlab.workflow.steps import Steps  # noqa: E402
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 validate(config, schema="../schemas/config.schema.yaml")  # a wrong key or value stops here, before any job
-PLAN = Plan(config)
+PLAN = Plan(config, sweep_dir=REPO / "conf" / "sweep")
 STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("hydra_overrides", []))
 RESULTS, LOGS = PLAN.results, PLAN.logs
 TRACKING_READY = "results/mlflow.ready"

@@ -125,7 +125,7 @@ rule sweep_table:
     """One row per setting (mean +- 95 % CI over its seeds) and a figure of the metric against each swept value."""
     input:
         evals=lambda wc: PLAN.sweep_point_evals(wc.sweep),
-        spec=lambda wc: f"conf/sweep/{wc.sweep}.yaml",
+        spec=lambda wc: str(PLAN.sweep_files / f"{wc.sweep}.yaml"),
     output:
         table=f"{RESULTS}/sweeps/{{sweep}}/table.md",
         csv=f"{RESULTS}/sweeps/{{sweep}}/table.csv",

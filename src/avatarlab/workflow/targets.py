@@ -15,7 +15,7 @@ import glob
 import sys
 from pathlib import Path
 
-from avatarlab.workflow.sweeps import load_sweeps
+from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
 
@@ -33,7 +33,7 @@ def available_subjects(subjects: dict, note=None) -> dict:
 
 
 class Plan:
-    def __init__(self, config: dict):
+    def __init__(self, config: dict, sweep_dir: str | Path | None = None):
         self.scale = config["scale"]
         self.results = f"results/{self.scale}"
         self.logs = f"logs/{self.scale}"
@@ -53,7 +53,8 @@ class Plan:
         self.speech_models = sorted(p.stem for p in SPEECH_MODEL_DIR.glob("*.yaml"))
         self.speech_subjects = [s for s in config.get("speech_subjects", []) if s in self.subjects]
         self.grid_clips = sorted(glob.glob(config["grid_clips"])) if config.get("grid_clips") else []
-        self.sweeps = load_sweeps()
+        self.sweep_files = Path(sweep_dir) if sweep_dir else SWEEP_DIR
+        self.sweeps = load_sweeps(self.sweep_files)
         self.requested_sweeps = list(config.get("sweeps") or [])
         unknown = [s for s in self.requested_sweeps if s not in self.sweeps]
         if unknown:
@@ -87,9 +88,9 @@ class Plan:
             values["preprocess.truth"] = truth[0]
         if subject in self.image_sets:
             values["fit_rgb.mode"] = "images"
-        for key, target in (("fps", "preprocess.fps"), ("max_frames", "preprocess.max_frames")):
+        for key, target, kind in (("fps", "preprocess.fps", float), ("max_frames", "preprocess.max_frames", int)):
             if spec.get(key) is not None:
-                values[target] = spec[key]
+                values[target] = kind(spec[key])
         return values
 
     def test_clips(self, subject: str) -> int:
