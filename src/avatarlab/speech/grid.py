@@ -115,7 +115,9 @@ def align_phonemes(audio: np.ndarray, text: str, tts: Espeak, spec: FeatureSpec)
 @entry_point(READS)
 def main(cfg, device) -> None:
     sp = cfg.speech
-    clips = sorted(glob.glob(str(sp.grid_clips)))
+    given = sp.grid_clips  # a glob, or the list of clip paths the workflow passes
+    patterns = [str(given)] if isinstance(given, str) else [str(g) for g in given]
+    clips = sorted({Path(c) for p in patterns for c in glob.glob(p)})
     if not clips:
         raise FileNotFoundError(f"{sp.grid_clips}: no GRID clips")
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
