@@ -12,7 +12,7 @@ import logging
 import sys
 from pathlib import Path
 
-from avatarlab.evaluate.report import Table
+from avatarlab.evaluate.report import Table, save_figure
 from avatarlab.evaluate.scoring import LOWER_IS_BETTER
 from avatarlab.evaluate.seed_stats import mean_ci, pooled_sd, single_run_threshold
 from avatarlab.io import atomic_path
@@ -96,9 +96,7 @@ def figure(sweep: Sweep, rows: list[dict], path: Path) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(f"sweep {sweep.name}: mean over seeds, 95 % CI; grey: single runs", fontsize=9)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None) -> int:
