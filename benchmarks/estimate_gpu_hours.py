@@ -60,32 +60,35 @@ def main() -> None:
 
     s = compose_config(["scale=paper"]).scale
     batch = int(s.pretrain_batch)
-    cpu_256, flops_256 = paper_step(int(s.pretrain_image_size), int(s.pretrain_feature_size), args.batch,
-                                    args.threads, args.steps)
-    cpu_128, flops_128 = paper_step(int(s.renderer_experiment_image_size), int(s.renderer_experiment_feature_size),
-                                    args.batch, args.threads, args.steps)
     scale = batch / args.batch
-    per_iter_256, per_iter_128 = flops_256 * scale, flops_128 * scale
-    cpu_iter_256 = cpu_256 * scale
-    cpu_flops = per_iter_256 / cpu_iter_256  # FLOP/s this CPU sustains in a paper-size step
+    base = int(s.pretrain_image_size)
+    sizes = sorted({base, int(s.renderer_experiment_image_size), *[int(r) for r in s.resolution_tiers]})
+    measured = {size: paper_step(size, size // 8, args.batch, args.threads, args.steps) for size in sizes}
+    per_iter = {size: flops * scale for size, (_, flops) in measured.items()}
+    top = sizes[-1]
+    cpu_flops = per_iter[top] / (measured[top][0] * scale)  # FLOP/s this CPU sustains in the largest paper step
     jobs = [  # (what, count, iterations each, FLOPs per iteration)
-        ("alpha pretraining (alpha1, alpha2)", 2, int(s.pretrain_alpha_iterations), per_iter_256),
-        ("beta continuations (beta1-6 x alpha1/alpha2)", 12, int(s.pretrain_beta_iterations), per_iter_256),
-        ("renderer experiment (proposed, baseline) at 128²", 2, int(s.renderer_experiment_iterations), per_iter_128),
-        (f"avatars: {args.subjects} subjects x (14 inits + 2 interpolation variants)", args.subjects * 16,
-         int(s.finetune_iterations), per_iter_256),
+        (f"alpha pretraining (alpha1, alpha2) at {base}²", 2, int(s.pretrain_alpha_iterations), per_iter[base]),
+        (f"beta continuations (beta1-6 x alpha1/alpha2) at {base}²", 12, int(s.pretrain_beta_iterations),
+         per_iter[base]),
+        (f"renderer experiment (proposed, baseline) at {s.renderer_experiment_image_size}²", 2,
+         int(s.renderer_experiment_iterations), per_iter[int(s.renderer_experiment_image_size)]),
+        (f"avatars at {base}²: {args.subjects} subjects x (14 inits + 2 interpolation variants)", args.subjects * 16,
+         int(s.finetune_iterations), per_iter[base]),
     ]
+    for size in s.resolution_tiers:
+        jobs += [(f"final recipe continued at {size}²", 1, int(s.resolution_tier_iterations), per_iter[int(size)]),
+                 (f"final-recipe avatars at {size}²: {args.subjects} subjects", args.subjects,
+                  int(s.finetune_iterations), per_iter[int(size)])]
     lines = ["# GPU-hours of the full reproduction at paper scale (estimate)", "",
              f"Written by `python benchmarks/estimate_gpu_hours.py` on this machine ({args.threads} CPU threads).",
              "", "## Measured here", "",
-             f"- Training step at paper sizes (CNeRF {s.nerf_depth}x{s.nerf_width}, {s.nerf_samples} samples/ray, "
-             f"{s.pretrain_feature_size}² feature map -> {s.pretrain_image_size}² image, proposed renderer, "
-             f"perceptual stand-in) at batch {args.batch}: **{cpu_256:.2f} s** on the CPU, "
-             f"**{flops_256 / 1e9:.1f} GFLOP** (forward + backward, torch FlopCounterMode).",
-             f"- Scaled to the paper batch of {batch}: {per_iter_256 / 1e12:.2f} TFLOP per iteration, "
-             f"{cpu_iter_256:.0f} s per iteration on this CPU "
-             f"({cpu_flops / 1e9:.0f} GFLOPS sustained).",
-             f"- At 128² (renderer experiment, 16² features): {per_iter_128 / 1e12:.2f} TFLOP per iteration.",
+             *[f"- Training step at paper sizes (CNeRF {s.nerf_depth}x{s.nerf_width}, {s.nerf_samples} samples/ray, "
+               f"{size // 8}² feature map -> {size}² image, proposed renderer, perceptual stand-in) at batch "
+               f"{args.batch}: **{measured[size][0]:.2f} s** on the CPU, **{measured[size][1] / 1e9:.1f} GFLOP** "
+               f"(forward + backward, torch FlopCounterMode); at the paper batch of {batch}: "
+               f"{per_iter[size] / 1e12:.2f} TFLOP per iteration" for size in sizes],
+             f"- This CPU sustains {cpu_flops / 1e9:.0f} GFLOPS in the {top}² step.",
              "", "## Job graph", "", "| jobs | count | iterations each | PFLOP total | CPU-days here |",
              "| --- | --- | --- | --- | --- |"]
     total = 0.0
@@ -101,8 +104,9 @@ def main() -> None:
     for gpu, peak in GPUS.items():
         rate = peak * 1e12 * SUSTAINED
         lines.append(f"| {gpu} | {peak:.1f} | {total * 1e15 / rate / 3600:.0f} | "
-                     f"{s.pretrain_alpha_iterations * per_iter_256 / rate / 3600:.1f} h | "
-                     f"{s.finetune_iterations * per_iter_256 / rate / 60:.1f} min |")
+                     f"{s.pretrain_alpha_iterations * per_iter[base] / rate / 3600:.1f} h | "
+                     f"{s.finetune_iterations * per_iter[base] / rate / 60:.1f} min at {base}², "
+                     f"{s.finetune_iterations * per_iter[top] / rate / 60:.1f} min at {top}² |")
     lines += ["", "Assumptions: the cost is linear in the batch; the head-model renders of synthetic samples and data "
               "loading overlap with the GPU step (not counted); the perceptual network is the stand-in (VGG16 adds "
               "about 2 x 15.5 GFLOP per 224² image forward, x3 with backward); "

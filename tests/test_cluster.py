@@ -111,7 +111,13 @@ def test_paper_scale_dry_run_lists_the_full_graph_with_cluster_resources(tmp_pat
     counts = dict(re.findall(r"^(\w+)\s+(\d+)$", text, flags=re.M))
     assert int(counts["pretrain_alpha"]) == 2 and int(counts["pretrain_beta"]) == 12
     assert int(counts["finetune_avatar"]) >= 14
+    assert int(counts["pretrain_resolution"]) == 2  # the final recipe continued at 256² and 512²
     jobs = text.split("\nrule ")
+    tier = next(j for j in jobs if j.startswith("pretrain_resolution:") and "_512px/model.pt" in j)
+    assert "beta6_from_alpha2_256px/model.pt" in tier.split("output:")[0], "512² continues the 256² model"
+    assert "strategy=beta6 model.image_size=512 model.feature_size=64" in tier and "threads: 8" in tier
+    apps = next(j for j in jobs if j.startswith("novel_views:"))
+    assert "final/beta6_from_alpha2_512px/model.pt" in apps, "the applications use the 512² avatar"
     pretrain = next(j for j in jobs if j.startswith("pretrain_alpha:"))
     assert "threads: 8" in pretrain and re.search(r"runtime=10080, gpu=1, mem_mb=64000", pretrain), pretrain
     light = next(j for j in jobs if j.startswith("extract_frames:"))

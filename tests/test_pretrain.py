@@ -295,11 +295,38 @@ def test_a_checkpoint_of_other_work_is_not_resumed(tmp_path):
     assert other_lr.history[-1]["loss"] != first.history[-1]["loss"]
 
 
+@pytest.mark.slow
+def test_a_resolution_tier_continues_the_final_recipe_at_twice_the_size(tmp_path):
+    """The tier step as the workflow runs it (Plan's overrides, the final recipe's strategy): the parent's weights
+    at twice the image and feature-map size, from the parent's last iteration, for the tier's iterations."""
+    from avatarlab.model.head_nerf import load_model_file
+    from avatarlab.train import pretrain
+    from avatarlab.workflow.targets import resolution_tiers
+
+    smoke = compose_config(["scale=smoke"]).scale
+    parent_net, _, parent = short_training(tmp_path, "beta6_from_alpha2")  # beta4 schedule from scratch: 6 + 3
+    scale = {**smoke, "resolution_tiers": [128], "resolution_tier_iterations": 2}
+    (tier,) = resolution_tiers("beta6_from_alpha2", scale)
+    assert (tier.name, tier.parent, tier.start, tier.size) == ("beta6_from_alpha2_128px", "beta6_from_alpha2", 9, 128)
+    cfg = step_cfg(pretrain, ["scale=smoke", "strategy=beta6", *tier.overrides(), "tracking.enabled=false",
+                              f"pretrain.real_subject_dir={tmp_path / 'real'}", f"pretrain.out_dir={tmp_path / tier.name}",
+                              f"pretrain.init_model={tmp_path / 'beta6_from_alpha2' / 'model.pt'}"])
+    net, result, report = pretrain.pretrain_model(cfg, torch.device("cpu"))
+    assert [h["step"] for h in result.history] == [10, 11] and report["start_step"] == 9
+    assert report["image_size"] == 128 and net.feature_size == 16 and parent_net.feature_size == 8
+    loaded, content = load_model_file(tmp_path / tier.name / "model.pt")
+    assert content["spec"]["feature_size"] == 16 and content["step"] == 11
+    assert loaded.feature_size == 16, "the tier model renders 128² (its training loss was taken at 128²)"
+    with pytest.raises(ValueError, match="must rise above pretrain_image_size"):
+        resolution_tiers("x", {**smoke, "resolution_tiers": [32], "resolution_tier_iterations": 2})
+
+
 def test_paper_scale_sizes_match_the_dissertation():
     """conf/scale/paper.yaml is the dissertation's set-up (DESIGN.md sections 3-4), number for number."""
     s = compose_config(["scale=paper"]).scale
     assert (s.pretrain_alpha_iterations, s.pretrain_beta_iterations, s.pretrain_batch) == (310000, 2500, 64)
-    assert (s.pretrain_image_size, s.pretrain_feature_size) == (256, 32)          # 32² feature map -> 256² image
+    assert (s.pretrain_image_size, s.pretrain_feature_size) == (128, 16)  # the 14 models and the ablations at 128²
+    assert list(s.resolution_tiers) == [256, 512] and s.resolution_tier_iterations == 300000  # final recipe, 2.4
     assert (s.nerf_frequencies, s.nerf_depth, s.nerf_width, s.nerf_skip_layer) == (10, 8, 384, 5)
     assert (s.nerf_feature_channels, s.nerf_samples) == (256, 64)
     assert list(s.synthetic_neck_deg) == [80, 60, 80]

@@ -144,3 +144,26 @@ def test_common_smk_only_wires(tmp_path):
     text = (REPO / "workflow" / "rules" / "common.smk").read_text()
     assert "import re" not in text and "ast." not in text, "no source scanning in the Snakefile"
     assert len(text.splitlines()) < 80, textwrap.shorten(text, 200)
+
+
+def test_paper_scale_continues_the_final_recipe_at_256_and_512():
+    """Seed 002: the 14 models and the ablations at 128², the final recipe then at 256² and 512²; the applications
+    use the highest resolution's avatar. Smoke and tiny have no tiers."""
+    config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
+    config.update(subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
+    steps = Steps(CONF_DIR, "paper", "procedural", [])
+    plan = Plan({**config, "scale": "paper"}, scale=steps.compose().scale)
+    assert [(t.name, t.size, t.parent, t.start) for t in plan.tiers] == [
+        ("beta6_from_alpha2_256px", 256, "beta6_from_alpha2", 312500),
+        ("beta6_from_alpha2_512px", 512, "beta6_from_alpha2_256px", 612500)]
+    assert plan.tiers[1].overrides() == ("model.image_size=512", "model.feature_size=64",
+                                         "pretrain.alpha_iterations=612500", "pretrain.beta_iterations=300000")
+    assert len(plan.pretrained) == 14 and plan.initialisations[14:] == [t.name for t in plan.tiers]
+    outputs = plan.avatar_outputs()
+    for s in plan.subjects:
+        assert f"results/paper/avatars/{s}/final/beta6_from_alpha2_512px/eval.json" in outputs
+        assert plan.final_avatar(s) == f"results/paper/avatars/{s}/final/beta6_from_alpha2_512px/model.pt"
+    assert not any("px" in o for o in outputs if "/base/" in o), "the ablations stay at 128²"
+    assert "results/paper/pretrain/beta6_from_alpha2_512px/eval.json" in plan.pretrain_outputs()
+    tiny = Plan({**config, "scale": "tiny"}, scale=Steps(CONF_DIR, "tiny", "procedural", []).compose().scale)
+    assert tiny.tiers == [] and tiny.final_avatar("synth_talk").endswith("final/beta6_from_alpha2/model.pt")

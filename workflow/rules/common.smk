@@ -12,13 +12,14 @@ from avatarlab.workflow.steps import Steps  # noqa: E402
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 validate(config, schema="../schemas/config.schema.yaml")  # a wrong key or value stops here, before any job
-PLAN = Plan(config, sweep_dir=REPO / "conf" / "sweep")
 STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("hydra_overrides", []))
+SCALE = STEPS.compose().scale
+PLAN = Plan(config, sweep_dir=REPO / "conf" / "sweep", scale=SCALE)
 RESULTS, LOGS = PLAN.results, PLAN.logs
 TRACKING_READY = "results/mlflow.ready"
 # per kind of step (light, fit, train, finetune, speech): cpus (= threads locally), mem_mb, runtime, gpu; a cluster
 # executor (profiles/slurm) turns them into each job's request. `threads_per_job` overrides the cpus locally.
-STEP_RESOURCES = STEPS.compose().scale.resources
+STEP_RESOURCES = SCALE.resources
 THREADS_OVERRIDE = config.get("threads_per_job")
 
 
@@ -41,7 +42,8 @@ wildcard_constraints:
     alpha="|".join(PLAN.alphas),
     beta="|".join(PLAN.betas),
     renderer="|".join(PLAN.renderers),
-    init="|".join(PLAN.pretrained),
+    init="|".join(PLAN.initialisations),
+    tier="|".join(t.name for t in PLAN.tiers) or "(?!)",  # (?!): no tier at this scale matches nothing
     recipe="base|final",
     variant="b|c",
     seed="[1-9][0-9]*",

@@ -74,6 +74,32 @@ rule pretrain_beta:
         "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
+rule pretrain_resolution:
+    """The final recipe continued at a higher resolution (the scale's `resolution_tiers`; seed 002, 2.4 and 4:
+    the 14 models and the ablations at 128x128, the chosen recipe then at 256x256 and 512x512): the previous tier's
+    weights at the new image and feature-map size, the final recipe's strategy from the parent's last iteration."""
+    input:
+        **real_set(),
+        tracking=TRACKING_READY,
+        parent=lambda wc: f"{RESULTS}/pretrain/{PLAN.tier(wc.tier).parent}/model.pt",
+    output:
+        model=f"{RESULTS}/pretrain/{{tier}}/model.pt",
+        train=f"{RESULTS}/pretrain/{{tier}}/train.json",
+    log:
+        f"{LOGS}/pretrain/{{tier}}.log",
+    params:
+        **pretrain_step(lambda wc: wc.tier, lambda wc: PLAN.final_strategy(),
+                        lambda wc: PLAN.tier(wc.tier).overrides(),
+                        **{"pretrain.init_model": lambda i: i.parent}),
+    threads: step_threads("train")
+    resources:
+        **step_resources("train"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+
+
 rule renderer_run:
     input:
         **real_set(),

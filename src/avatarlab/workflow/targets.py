@@ -6,6 +6,8 @@
         recipe: final (every subject's avatar, from the final recipe's model) | base (the ablation fine-tunes:
         the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>)
         <init>_seed<k>: the same run with seed k (k = 1 .. seeds-1; seed 0 is the plain folder)
+    results/<scale>/pretrain/<final recipe>_<R>px/...    the final recipe continued at resolution R (the scale's
+        `resolution_tiers`), and results/<scale>/avatars/<subject>/final/<final recipe>_<R>px/... from it
     results/<scale>/apps/<subject>/...   results/<scale>/speech/...   results/<scale>/report/...
     results/<scale>/sweeps/<sweep>/{table.md,table.csv,figure.png}, <sweep>/<point>/{model.pt,train.json,eval.json}
 """
@@ -13,11 +15,31 @@ from __future__ import annotations
 
 import glob
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
+
+
+def resolution_tiers(final_recipe: str, scale: dict) -> list[ResolutionTier]:
+    """The scale's `resolution_tiers` (e.g. [256, 512] at paper scale; none at smoke and tiny) as a chain from the
+    final recipe's model: each tier continues the previous one after `resolution_tier_iterations`."""
+    sizes = [int(r) for r in (scale.get("resolution_tiers") or [])]
+    if not sizes:
+        return []
+    bad = [r for r in sizes if r % 8 or r <= int(scale["pretrain_image_size"])]
+    if bad or sizes != sorted(set(sizes)):
+        raise ValueError(f"conf/scale/{scale.get('name')}.yaml: resolution_tiers {sizes} must rise above "
+                         f"pretrain_image_size {scale['pretrain_image_size']} in multiples of 8")
+    step = int(scale["pretrain_alpha_iterations"]) + int(scale["pretrain_beta_iterations"])
+    every = int(scale["resolution_tier_iterations"])
+    tiers, parent = [], final_recipe
+    for size in sizes:
+        tiers.append(ResolutionTier(f"{final_recipe}_{size}px", size, parent, step, every))
+        parent, step = tiers[-1].name, step + every
+    return tiers
 
 
 def available_subjects(subjects: dict, note=None) -> dict:
@@ -32,8 +54,28 @@ def available_subjects(subjects: dict, note=None) -> dict:
     return kept
 
 
+@dataclass(frozen=True)
+class ResolutionTier:
+    """The final recipe's model continued at a higher resolution (seed 002, section 2.4: "300 000 iterations for
+    every resolution (128, 256, 512)"; section 4: the ablations at 128x128, the best combination then at 256x256
+    and 512x512): `parent`'s weights (the previous tier) trained on at `size` for `iterations` more iterations with
+    the final recipe's strategy, from the parent's last iteration `start`."""
+    name: str
+    size: int
+    parent: str
+    start: int
+    iterations: int
+
+    def overrides(self) -> tuple[str, ...]:
+        """The Hydra overrides of its pretraining step (with the final recipe's strategy): a beta-style
+        continuation of the parent from `start`, at this tier's image and feature-map size."""
+        return (f"model.image_size={self.size}", f"model.feature_size={self.size // 8}",
+                f"pretrain.alpha_iterations={self.start}", f"pretrain.beta_iterations={self.iterations}")
+
+
 class Plan:
-    def __init__(self, config: dict, sweep_dir: str | Path | None = None):
+    def __init__(self, config: dict, sweep_dir: str | Path | None = None, scale: dict | None = None):
+        """`scale`: the composed conf/scale section (resolution tiers and iteration budgets; none without it)."""
         self.scale = config["scale"]
         self.results = f"results/{self.scale}"
         self.logs = f"logs/{self.scale}"
@@ -45,6 +87,8 @@ class Plan:
         self.alphas, self.betas, self.renderers = config["alphas"], config["betas"], config["renderers"]
         self.pretrained = self.alphas + [f"{b}_from_{a}" for b in self.betas for a in self.alphas]
         self.final_recipe = config["final_recipe"]
+        self.tiers = resolution_tiers(self.final_recipe, scale or {})
+        self.initialisations = self.pretrained + [t.name for t in self.tiers]
         self.ablation_subjects = [s for s in config.get("ablation_subjects", []) if s in self.subjects]
         self.seeds = int(config.get("seeds", 1))
         self.interp_subjects = [s for s in config.get("interp_subjects", []) if s in self.subjects]
@@ -104,8 +148,16 @@ class Plan:
         """The folder names of an avatar's seeded repeats: <init> (seed 0), <init>_seed1, ..."""
         return [init] + [f"{init}_seed{k}" for k in range(1, self.seeds)]
 
+    def final_strategy(self) -> str:
+        return self.final_recipe.split("_from_")[0]
+
+    def tier(self, name: str) -> ResolutionTier:
+        return next(t for t in self.tiers if t.name == name)
+
     def final_avatar(self, subject: str) -> str:
-        return f"{self.avatar_dir(subject, 'final', self.final_recipe)}/model.pt"
+        """The avatar the applications use: the final recipe at the highest resolution the scale trains."""
+        top = self.tiers[-1].name if self.tiers else self.final_recipe
+        return f"{self.avatar_dir(subject, 'final', top)}/model.pt"
 
     def preprocessing_outputs(self) -> list[str]:
         outputs = [f"{self.results}/headmodel/render_grid.png", f"{self.results}/headmodel/dlib_check.json"]
@@ -115,7 +167,7 @@ class Plan:
         return outputs
 
     def pretrain_outputs(self) -> list[str]:
-        return ([f"{self.results}/pretrain/{name}/eval.json" for name in self.pretrained]
+        return ([f"{self.results}/pretrain/{name}/eval.json" for name in self.initialisations]
                 + [f"{self.results}/report/renderer_experiment.json"])
 
     def avatar_outputs(self) -> list[str]:
@@ -124,6 +176,7 @@ class Plan:
         outputs = []
         for subject in self.subjects:
             outputs += [f"{self.avatar_dir(subject, 'final', name)}/eval.json" for name in self.seeded(self.final_recipe)]
+            outputs += [f"{self.avatar_dir(subject, 'final', tier.name)}/eval.json" for tier in self.tiers]
             outputs += [f"{self.results}/apps/{subject}/novel_views.png",
                         f"{self.results}/apps/{subject}/telepresence.json"]
         for subject in self.ablation_subjects:
