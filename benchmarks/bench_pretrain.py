@@ -1,6 +1,7 @@
 """Training throughput of the parametric head model, its MLP's arithmetic rate and its rendering speed.
 
     python benchmarks/bench_pretrain.py [--scale tiny] [--iterations 20] [--threads 2] [--amp | --no-amp]
+    python benchmarks/bench_pretrain.py --processes 2 --threads 1   # the workflow's way: two one-thread jobs at once
 
 Prints, at the scale's sizes and in one process:
 - samples/s of a training step as pretraining runs it (alpha: every sample synthetic, so the head-model renders
@@ -10,12 +11,15 @@ Prints, at the scale's sizes and in one process:
   torch's FlopCounterMode, so the per-sample conditioning projection is counted as what it is) beside the sgemm rate
   of a 2048 x 2048 float32 matrix product measured in the same run;
 - frames/s of rendering an image (inference) at the scale's size and at 128x128.
+With --processes N: N processes measure the training step at the same time and the summed samples/s is printed
+(what `snakemake --cores 2` gets from two one-thread training jobs).
 Timings are the median over repeats; the machine is shared, so compare figures of one run with each other.
 """
 from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -108,7 +112,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
                         help="bfloat16 autocast (default: the config's amp)")
+    parser.add_argument("--processes", type=int, default=1, help="measure the training step in N processes at once")
+    parser.add_argument("--step-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.processes > 1:
+        concurrent_training(args)
+        return
     torch.set_num_threads(args.threads)
     from helpers import compose_config
 
@@ -117,6 +126,10 @@ def main() -> None:
     m, batch = cfg.model, int(cfg.pretrain.batch)
     run = training_setup(cfg, batch)
     step_time = median_seconds(lambda: run.step(run.stream.next()), args.iterations)
+    if args.step_only:
+        run.stream.close()
+        print(f"samples/s {batch / step_time}")
+        return
     serial = median_seconds(lambda: run.step(run.source.draw(1, torch.Generator().manual_seed(2))),
                             max(3, args.iterations // 4))
     run.stream.close()
@@ -141,6 +154,22 @@ def main() -> None:
         with torch.no_grad():
             fps = 1 / median_seconds(lambda: net(geometry, appearance, cam, stratified=False), 5)
         print(f"render {res}x{res} (feature map {res // 8}x{res // 8}): {fps:.1f} frames/s")
+
+
+def concurrent_training(args) -> None:
+    """The training step measured in args.processes processes started together; prints each rate and the sum."""
+    command = [sys.executable, __file__, "--scale", args.scale, "--iterations", str(args.iterations),
+               "--threads", str(args.threads), "--step-only"]
+    command += [] if args.amp is None else ["--amp" if args.amp else "--no-amp"]
+    processes = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True) for _ in range(args.processes)]
+    rates = []
+    for process in processes:
+        out, _ = process.communicate()
+        if process.returncode:
+            raise SystemExit(f"a benchmark process failed (exit {process.returncode})")
+        rates.append(float(out.strip().splitlines()[-1].split()[-1]))
+    print(f"scale {args.scale}: {args.processes} processes x {args.threads} thread(s) at once: "
+          f"{sum(rates):.1f} samples/s in all ({', '.join(f'{r:.1f}' for r in rates)} each)")
 
 
 if __name__ == "__main__":
