@@ -53,6 +53,11 @@ def test_networks_stay_on_the_device():
     window = PhonemeWindowMLP(40, 6, 11, 5, 32).to(META)
     one_hot = window.windows(torch.randint(0, 40, (30,), device=META))  # used to pad with CPU zeros
     assert one_hot.shape == (30, 11, 40) and window(one_hot).shape == (30, 5, 6)
+    from avatarlab.speech.visemes import PHONEMES
+
+    window = PhonemeWindowMLP(len(PHONEMES), 6, 11, 5, 32, inputs="linguistic").to(META)
+    indicators = window.windows(torch.randint(0, len(PHONEMES), (30,), device=META))
+    assert indicators.device == META and window(indicators).shape == (30, 5, 6)
 
     cfg = CNeRFConfig(frequencies=2, depth=3, width=16, skip_layer=1, feature_channels=4, samples=4, n_shape=3,
                       n_expression=2, n_texture=2)

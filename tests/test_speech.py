@@ -4,7 +4,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from helpers import SHARED_DATA
+from helpers import REPO, SHARED_DATA
 
 from avatarlab.speech.features import FeatureSpec, frame_features, read_wav, windows, write_wav
 from avatarlab.speech.lip_metrics import align_to, lip_error_percent
@@ -98,7 +98,6 @@ def test_lstm_model_loss_and_regulariser(head_model):
 
 def test_seed_000_without_regularisation_has_no_phoneme_module(head_model):
     """Seed 000's baseline: no phoneme classifier at all (not the classifier with lambda2 = 0)."""
-    from helpers import REPO
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
@@ -126,6 +125,69 @@ def test_window_model_averages_overlapping_outputs():
     # output j of window t is frame t - 2 + j: frame 3 is output j of window 5 - j
     expected = torch.stack([out[5 - j, j] for j in range(5)]).mean(0)
     assert torch.allclose(seq[3], expected, atol=1e-6)
+
+
+def test_window_model_reads_the_papers_linguistic_indicators():
+    """Seed 001: identity over spans, categories per frame, transitions between frames, checked by hand on
+    'm a' padded with silence; the model trains on them (default) and one-hot stays a named variant."""
+    from avatarlab.speech.linguistic import CATEGORIES, CLASSES, SPANS, linguistic_size
+
+    model = PhonemeWindowMLP(len(PHONEMES), 3, k_x=5, k_y=3, hidden=8, dropout=0.0, inputs="linguistic")
+    m, a = PHONEMES.index("m"), PHONEMES.index("a")
+    x = model.windows(torch.tensor([m, m, a]))  # window of frame 1: [_, m, m, a, _]
+    n_p, n_c, cats = len(PHONEMES), len(CATEGORIES), list(CATEGORIES)
+    assert x.shape == (3, linguistic_size(5)) and set(x.unique().tolist()) == {0.0, 1.0}
+    identity, rest = x[1, :5 * n_p].reshape(5, n_p), x[1, 5 * n_p:]
+    assert identity.argmax(1).tolist() == [0, m, m, a, 0]
+    spans, rest = rest[:2 * n_p].reshape(2, n_p), rest[2 * n_p:]  # span 3 (5 is the whole window here) + window
+    assert SPANS[0] == 3 and spans[0].nonzero().flatten().tolist() == sorted([m, a])
+    assert spans[1].nonzero().flatten().tolist() == sorted([0, m, a])
+    per_frame, moves = rest[:5 * n_c].reshape(5, n_c), rest[5 * n_c:].reshape(4, 7)
+    named = [{cats[i] for i in row.nonzero().flatten().tolist()} for row in per_frame]
+    assert {"nasal", "bilabial", "consonant", "voiced", "viseme_pbm"} <= named[1] and "vowel" not in named[1]
+    assert {"vowel", "open_vowel", "viseme_open"} <= named[3] and named[0] == {"silence", "viseme_sil"}
+    # transitions: change flag, then (from, to) over CLASSES = silence, vowel, consonant without a == b
+    pairs = [(a_, b_) for a_ in range(3) for b_ in range(3) if a_ != b_]
+    expect = [(0, 2), None, (2, 1), (1, 0)]  # _->m, m->m, m->a, a->_
+    for k, pair in enumerate(expect):
+        assert moves[k, 0] == (pair is not None)
+        assert moves[k, 1:].nonzero().flatten().tolist() == ([pairs.index(pair)] if pair else []), (k, CLASSES)
+    assert model(x).shape == (3, 3, 3)
+    with pytest.raises(ValueError, match="linguistic inputs describe"):
+        PhonemeWindowMLP(5, 3, inputs="linguistic")
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        assert compose(config_name="config", overrides=["speech_model=window"]).speech.window_inputs == "linguistic"
+
+
+def test_speech_baselines_score_a_still_mouth_and_a_phoneme_lookup():
+    """The trivial predictors of the lip error, on made-up faces whose mouth opens by a fixed amount on phoneme 1:
+    the lookup is exact, a still mouth is not, and a model is judged on the motion alone (its face may differ)."""
+    from avatarlab.speech.lip_metrics import LIPS, baseline_scores, motion_only, trivial_predictions
+
+    rng = np.random.default_rng(0)
+
+    def utterance(labels):
+        face = rng.normal(size=(68, 2))  # another speaker's face each time
+        face[36], face[45] = [-1.0, 0.0], [1.0, 0.0]  # inter-ocular distance 2
+        frames = np.repeat(face[None], len(labels), 0)
+        frames[np.asarray(labels) == 1, LIPS[0]:, 1] += 0.2  # the mouth moves on phoneme 1
+        return {"landmarks": frames, "labels": np.asarray(labels)}
+
+    train = [utterance([0, 1, 1, 0]), utterance([1, 0, 0, 1])]
+    test = [utterance([0, 0, 1, 1, 1, 0])]
+    truth = test[0]["landmarks"]
+    predictions = trivial_predictions(train, test)
+    assert np.allclose(motion_only(predictions["phoneme_mean"], [truth]), truth)  # the lookup is exact here
+    scores = baseline_scores(train, test, model_error=1.0)
+    # a still mouth at the mean: off by 0.2 * 1/2 on each frame -> 0.1 / 2 = 5 % of the inter-ocular distance
+    assert scores["baselines"]["still_mouth"] == pytest.approx(5.0) and scores["baselines"]["phoneme_mean"] < 1e-6
+    assert scores["best_baseline"] == "phoneme_mean" and scores["gain_over_best_baseline"] == pytest.approx(-1.0)
+    audio_only = baseline_scores(train, test, model_error=1.0, fair=("still_mouth",))
+    assert audio_only["best_baseline"] == "still_mouth" and audio_only["gain_over_best_baseline"] == pytest.approx(4.0)
+    other_face = truth + np.array([0.5, -0.3])  # right motion, wrong place: no motion error
+    assert lip_error_percent(motion_only([other_face], [truth]), truth) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_procrustes_alignment_and_lip_metric():

@@ -270,6 +270,7 @@ class Speech:
     batch: int = at_least(1)
     k_x: int = at_least(1)
     k_y: int = at_least(1)
+    window_inputs: str = one_of("linguistic", "one_hot")
     window_batch: int = at_least(1)
     speakers: int = at_least(3)
     utterances: int = at_least(1)

@@ -3,9 +3,10 @@
 Seed 000 (`AudioToVisemes`): per video frame a 250 ms window of 65 audio features -> a convolutional encoder with batch
 norm -> an LSTM over frames -> two heads: viseme weights a (softmax: on the simplex) and phoneme probabilities p.
 The landmarks are a fixed linear layer of the weights: l = Pr(B0) + sum_j a_j (Pr(B_j) - Pr(B0)).
-Seed 001 (`PhonemeWindowMLP`, Taylor et al. 2017): one-hot phonemes of k_x = 11 frames -> 3 tanh layers (3000 wide at
-paper scale) with dropout 0.5 -> k_y = 5 frames of the reference face's parameters; overlapping predictions of a frame
-are averaged.
+Seed 001 (`PhonemeWindowMLP`, Taylor et al. 2017): the phoneme labels of k_x = 11 frames as the paper's linguistic
+indicator vector (`speech/linguistic.py`; `inputs="one_hot"`: the phoneme identities alone) -> 3 tanh layers (3000
+wide at paper scale) with dropout 0.5 -> k_y = 5 frames of the reference face's parameters; overlapping predictions
+of a frame are averaged.
 """
 from __future__ import annotations
 
@@ -71,27 +72,46 @@ def speech_loss(weights, logits, landmarks, target_landmarks, target_phonemes, p
 
 
 class PhonemeWindowMLP(nn.Module):
+    INPUTS = ("linguistic", "one_hot")
+
     def __init__(self, n_phonemes: int, n_outputs: int, k_x: int = 11, k_y: int = 5, hidden: int = 3000,
-                 layers: int = 3, dropout: float = 0.5):
+                 layers: int = 3, dropout: float = 0.5, inputs: str = "one_hot"):
         super().__init__()
-        self.k_x, self.k_y, self.n_outputs = k_x, k_y, n_outputs
-        dims = [k_x * n_phonemes] + [hidden] * layers
+        from avatarlab.speech.linguistic import category_matrix, coarse_class, linguistic_size
+        from avatarlab.speech.visemes import PHONEMES
+
+        if inputs not in self.INPUTS:
+            raise ValueError(f"speech.window_inputs must be one of {self.INPUTS}, got {inputs!r}")
+        if inputs == "linguistic" and n_phonemes != len(PHONEMES):
+            raise ValueError(f"linguistic inputs describe the {len(PHONEMES)} phonemes of visemes.PHONEMES, "
+                             f"not {n_phonemes}")
+        self.k_x, self.k_y, self.n_outputs, self.inputs = k_x, k_y, n_outputs, inputs
+        linguistic = inputs == "linguistic"
+        self.register_buffer("categories", category_matrix() if linguistic else torch.zeros(0), persistent=False)
+        self.register_buffer("classes", coarse_class() if linguistic else torch.zeros(0, dtype=torch.long),
+                             persistent=False)
+        dims = [linguistic_size(k_x) if linguistic else k_x * n_phonemes] + [hidden] * layers
         blocks = []
         for a, b in zip(dims[:-1], dims[1:]):
             blocks += [nn.Linear(a, b), nn.Tanh(), nn.Dropout(dropout)]
         self.net = nn.Sequential(*blocks, nn.Linear(dims[-1], k_y * n_outputs))
         self.n_phonemes = n_phonemes
 
-    def forward(self, one_hot_windows: torch.Tensor) -> torch.Tensor:
-        """(B, k_x, P) -> (B, k_y, D)."""
-        return self.net(one_hot_windows.flatten(1)).reshape(-1, self.k_y, self.n_outputs)
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        """(B, k_x, P) one-hot or (B, D) linguistic windows -> (B, k_y, D)."""
+        return self.net(windows.flatten(1)).reshape(-1, self.k_y, self.n_outputs)
 
     def windows(self, labels: torch.Tensor) -> torch.Tensor:
-        """(T,) phoneme ids -> (T, k_x, P) one-hot windows centred on every frame (edges padded with silence)."""
+        """(T,) phoneme ids -> the model's input for the windows centred on every frame (edges padded with
+        silence): (T, k_x, P) one-hot, or (T, D) linguistic indicators."""
+        from avatarlab.speech.linguistic import linguistic_features
+
         half = self.k_x // 2
         silence = torch.zeros(half, dtype=labels.dtype, device=labels.device)
         padded = torch.cat([silence, labels, silence])
         idx = torch.arange(len(labels), device=labels.device)[:, None] + torch.arange(self.k_x, device=labels.device)[None]
+        if self.inputs == "linguistic":
+            return linguistic_features(padded[idx], self.categories, self.classes)
         return nn.functional.one_hot(padded[idx], self.n_phonemes).float()
 
     @torch.no_grad()

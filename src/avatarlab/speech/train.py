@@ -23,7 +23,7 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import FeatureSpec, windows
-from avatarlab.speech.lip_metrics import align_to, lip_error_percent
+from avatarlab.speech.lip_metrics import align_to, baseline_scores, lip_error_percent, motion_only
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
 from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, phoneme_to_viseme_matrix, viseme_basis
 from avatarlab.tracking import start_run
@@ -58,9 +58,14 @@ class Corpus:
 
 
 def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, device=CPU):
-    """Seed 000's model trained on `device`, with mixed precision if `cfg.amp` (the loss in float32)."""
+    """Seed 000's model trained on `device`, with mixed precision if `cfg.amp` (the loss in float32).
+    The landmark targets are each speaker's motion on the neutral face Pr(B0) (the frame minus its utterance's mean
+    shape, plus Pr(B0)): the model's landmarks are Pr(B0) plus viseme offsets and cannot carry a speaker's face, so
+    the identity part of the raw error would only pull the viseme weights away from the mouth's motion."""
     sp = cfg.speech
     train_items = corpus.split("train")
+    neutral = basis[0].numpy()
+    targets = [item["landmarks"] - item["landmarks"].mean(0, keepdims=True) + neutral for item in train_items]
     feats = np.concatenate([i["windows"].reshape(-1, i["windows"].shape[-1]) for i in train_items])
     model = AudioToVisemes(feats.shape[1], len(NAMES), len(PHONEMES), basis, int(cfg.speech.channels),
                            int(cfg.speech.hidden), phoneme_head=bool(sp.phoneme_head))
@@ -87,7 +92,7 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, devic
                 s = int(rng.integers(0, max(1, n - chunk + 1)))
                 sl = slice(s, min(n, s + chunk))
                 pad = chunk - (sl.stop - sl.start)
-                w, lab, lm = item["windows"][sl], item["labels"][sl], item["landmarks"][sl]
+                w, lab, lm = item["windows"][sl], item["labels"][sl], targets[k][sl]
                 if pad:
                     w = np.concatenate([w, np.repeat(w[-1:], pad, 0)])
                     lab = np.concatenate([lab, np.repeat(lab[-1:], pad)])
@@ -104,10 +109,11 @@ def train_lstm(cfg, corpus: Corpus, basis: torch.Tensor, regularize: bool, devic
             scaler.step(optim)
             scaler.update()
         val = evaluate_lstm(model, corpus.split("val"))
-        plateau.step(val["lip_error_percent"])
+        plateau.step(val["motion_lip_error_percent"])
         history.append({"epoch": epoch + 1, "loss": float(loss), **parts, "val_lip_error_percent":
-                        val["lip_error_percent"]})
-        log.info("epoch %d loss %.5f val lip error %.2f %% IOD", epoch + 1, float(loss), val["lip_error_percent"])
+                        val["lip_error_percent"], "val_motion_lip_error_percent": val["motion_lip_error_percent"]})
+        log.info("epoch %d loss %.5f val lip error %.2f %% IOD (motion %.2f %%)", epoch + 1, float(loss),
+                 val["lip_error_percent"], val["motion_lip_error_percent"])
     return model, history
 
 
@@ -123,8 +129,15 @@ def evaluate_lstm(model: AudioToVisemes, items: list[dict]) -> dict:
         if logits is not None:
             correct += int((logits[0].cpu().argmax(-1).numpy() == item["labels"]).sum())
         total += len(item["labels"])
-    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), np.concatenate(truths)),
+    return {**lip_errors(preds, truths),
             "phoneme_accuracy": correct / max(total, 1) if model.phonemes is not None else None}
+
+
+def lip_errors(preds: list[np.ndarray], truths: list[np.ndarray]) -> dict:
+    """Per-utterance predictions and truths -> the raw lip error and the error of the mouth's motion alone."""
+    truth = np.concatenate(truths)
+    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
+            "motion_lip_error_percent": lip_error_percent(motion_only(preds, truths), truth)}
 
 
 @torch.no_grad()
@@ -146,20 +159,23 @@ def train_window(cfg, corpus: Corpus, device=CPU):
     sp = cfg.speech
     train_items = corpus.split("train")
     flat = np.concatenate([i["landmarks"].reshape(len(i["landmarks"]), -1) for i in train_items])
-    mean = flat.mean(0)
-    _, sv, vt = np.linalg.svd(flat - mean, full_matrices=False)
+    mean = flat.mean(0)  # the mean face; the components describe the motion within an utterance (each utterance's
+    motion = [(i["landmarks"] - i["landmarks"].mean(0, keepdims=True)).reshape(len(i["landmarks"]), -1)
+              for i in train_items]  # own mean removed): the reference face of seed 001 is one face that moves
+    _, sv, vt = np.linalg.svd(np.concatenate(motion), full_matrices=False)
     n_pca = int(cfg.speech.pca)
     comps, sigma = vt[:n_pca], sv[:n_pca] / np.sqrt(len(flat) - 1)
-    model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.speech.window_hidden))
+    model = PhonemeWindowMLP(len(PHONEMES), n_pca, int(sp.k_x), int(sp.k_y), int(cfg.speech.window_hidden),
+                             inputs=str(sp.window_inputs))
     model.to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(sp.lr))
     amp = bool(cfg.get("amp", False))
     scaler = grad_scaler(device, amp)
     xs, ys = [], []
     half = model.k_y // 2
-    for item in train_items:
+    for item, moves in zip(train_items, motion):
         labels = torch.from_numpy(item["labels"])
-        coef = (item["landmarks"].reshape(len(labels), -1) - mean) @ comps.T / sigma  # whitened targets
+        coef = moves @ comps.T / sigma  # whitened targets
         padded = np.concatenate([np.repeat(coef[:1], half, 0), coef, np.repeat(coef[-1:], half, 0)])
         xs.append(model.windows(labels))
         ys.append(np.stack([padded[t:t + model.k_y] for t in range(len(labels))]))
@@ -190,7 +206,7 @@ def evaluate_window(model: PhonemeWindowMLP, pca: dict, items: list[dict]) -> di
         coef = model.predict_sequence(torch.from_numpy(item["labels"])).numpy()
         preds.append((pca["mean"] + (coef * pca["sigma"]) @ pca["components"]).reshape(-1, 68, 2))
         truths.append(item["landmarks"])
-    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), np.concatenate(truths))}
+    return lip_errors(preds, truths)
 
 
 def rig_jacobian(head, components: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
@@ -280,11 +296,18 @@ def main(cfg, device) -> None:
             metrics["retargeted_lip_error_percent"] = lip_error_percent(np.concatenate(preds), np.concatenate(truths))
             pca["reference_poses"] = poses
             metrics.update({"lookahead_ms": 1000 * (int(sp.k_x) // 2) / 25.0,
-                            "latency_ms": 1000 * (int(sp.k_x) // 2) / 25.0, "input": "phoneme labels"})
+                            "latency_ms": 1000 * (int(sp.k_x) // 2) / 25.0,
+                            "input": f"phoneme labels ({sp.window_inputs})", "input_size": model.net[0].in_features})
             state = {"model": model.state_dict(), "kind": "window",  # tensors and plain values: weights_only loads
                      "pca": {k: torch.as_tensor(np.asarray(v)) for k, v in pca.items()}}
         else:
             raise ValueError(f"speech.model={sp.model!r}: expected lstm or window")
+        # an audio model is not told the phonemes: the phoneme lookup is a reference for it, not its baseline
+        fair = ("still_mouth", "phoneme_mean") if sp.model == "window" else ("still_mouth",)
+        metrics.update(baseline_scores(corpus.split("train"), test, metrics["motion_lip_error_percent"], fair))
+        log.info("%s: motion lip error %.2f %% IOD vs best trivial predictor %s %.2f %% (gain %+.2f)", name,
+                 metrics["motion_lip_error_percent"], metrics["best_baseline"],
+                 metrics["baselines"][metrics["best_baseline"]], metrics["gain_over_best_baseline"])
         state["model"] = {k: v.cpu() for k, v in state["model"].items()}  # loadable without the training device
         state["config"] = OmegaConf.to_container(cfg, resolve=True)
         with atomic_path(out_dir / "model.pt") as tmp:
@@ -297,6 +320,7 @@ def main(cfg, device) -> None:
                 mlf.log_metrics({f"train_{k}": float(v) for k, v in epoch.items() if k != "epoch"},
                                 step=int(epoch["epoch"]))
             mlf.log_metrics({f"test_{k}": v for k, v in metrics.items() if isinstance(v, float)})
+            mlf.log_metrics({f"baseline_{k}_lip_error_percent": v for k, v in metrics["baselines"].items()})
             mlf.log_metric("train_seconds", seconds)
     log.info("%s: test lip error %.2f %% IOD, latency %.0f ms (%.0fs training)", name,
              metrics["lip_error_percent"], metrics["latency_ms"], seconds)
