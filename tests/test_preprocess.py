@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -132,6 +134,38 @@ def test_backward_warp_shifts_and_interpolator_starts_as_cross_fade():
     net = XVFILite(width=8, scales=2)
     a, b = torch.rand(2, 3, 16, 16), torch.rand(2, 3, 16, 16)
     np.testing.assert_allclose(net(a, b).detach().numpy(), (0.5 * (a + b)).numpy(), atol=1e-5)
+
+
+def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_sees_held_out_frames(tmp_path):
+    """One network for all subjects: triplets of every subject's kept frames (even indices) at strides 1 and 2,
+    offset into one tensor; the saved weights load back (weights only), anything else stops with a line."""
+    from helpers import fake_video_subject, step_cfg
+
+    from avatarlab.preprocess.interp import pretrain
+    from avatarlab.preprocess.interp.network import load_interpolator, save_interpolator
+
+    a, b = fake_video_subject(tmp_path / "a", count=9, size=32), fake_video_subject(tmp_path / "b", count=12, size=32)
+    frames, triplets, counts = pretrain.gather([a, b], [1, 2])
+    assert frames.shape == (21, 3, 32, 32) and counts == {"a": {"frames": 9, "triplets": 4},
+                                                          "b": {"frames": 12, "triplets": 6}}
+    local = np.where(triplets >= 9, triplets - 9, triplets)
+    assert (local % 2 == 0).all(), "only frames variant (b) keeps: the held-out (odd) frames are never trained on"
+    assert ((triplets >= 9).all(1) | (triplets < 9).all(1)).all(), "a triplet never mixes two videos"
+    assert sorted((t[2] - t[0]) // 2 for t in local.tolist()) == [2] * 7 + [4] * 3  # two motion speeds
+    cfg = step_cfg(pretrain, ["scale=smoke", f"interp.subject_dirs=[{a},{b}]", f"interp.out_dir={tmp_path / 'out'}",
+                              "interp.iterations=3", "interp.width=8", "interp.scales=2"])
+    pretrain.train_interpolator(cfg, torch.device("cpu"))
+    report = json.loads((tmp_path / "out" / "train.json").read_text())
+    assert report["iterations"] == 3 and report["triplets"] == 10 and not (tmp_path / "out" / "checkpoint.pt").exists()
+    assert load_interpolator(tmp_path / "out" / "model.pt").width == 8
+    net = XVFILite(width=8, scales=2)
+    save_interpolator(tmp_path / "net.pt", net, 3)
+    again = load_interpolator(tmp_path / "net.pt")
+    for p, q in zip(net.parameters(), again.parameters()):
+        torch.testing.assert_close(p, q)
+    torch.save({"format": "other"}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="bad.pt: not an avatarlab frame interpolator"):
+        load_interpolator(tmp_path / "bad.pt")
 
 
 def test_interpolation_training_resumes_to_the_same_result(tmp_path):

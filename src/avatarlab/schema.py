@@ -132,6 +132,10 @@ class Interp:
     batch: int = at_least(1)
     iterations: int = at_least(0)
     checkpoint_every: int = at_least(1)
+    strides: list[int] = MISSING
+    subject_dirs: list[str] = MISSING
+    out_dir: str = MISSING
+    model: str = MISSING
 
 
 @dataclass

@@ -128,9 +128,34 @@ rule fit_rgbd:
         "python -m avatarlab.preprocess.fit_rgbd {params.args} threads={threads} > {log} 2>&1"
 
 
+rule train_interpolator:
+    """The XVFI-style frame interpolator, trained once on every subject's video (several motion speeds) and then
+    used for each subject; the frames the interpolation experiment holds out are never among its training frames."""
+    input:
+        meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.videos],
+    output:
+        model=f"{RESULTS}/interp/model.pt",
+        report=f"{RESULTS}/interp/train.json",
+    log:
+        f"{LOGS}/interp/train.log",
+    params:
+        **step_params("avatarlab.preprocess.interp.pretrain", values=lambda wc, input, output: {
+            "interp.subject_dirs": [str(Path(m).parent) for m in input.meta],
+            "interp.out_dir": str(Path(output.model).parent)},
+            run_dir=lambda wc: f"{RESULTS}/interp/.hydra"),
+    threads: step_threads("fit")
+    resources:
+        **step_resources("fit"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.preprocess.interp.pretrain {params.args} threads={threads} > {log} 2>&1"
+
+
 rule interpolate_frames:
     input:
         meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+        model=f"{RESULTS}/interp/model.pt",
     output:
         report=f"{RESULTS}/subjects/{{subject}}/interp.json",
         frames=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
@@ -139,7 +164,7 @@ rule interpolate_frames:
     log:
         f"{LOGS}/subjects/{{subject}}/interp.log",
     params:
-        **subject_step("avatarlab.preprocess.interp.run", "interp"),
+        **subject_step("avatarlab.preprocess.interp.run", "interp", **{"interp.model": lambda i, o: i.model}),
     threads: step_threads("fit")
     resources:
         **step_resources("fit"),

@@ -66,8 +66,8 @@ SUBSTITUTIONS = [
      "ImageNet weights are a licensed optional input"),
     ("LPIPS", "LPIPS-VGG", "LPIPS-VGG only with its backbone given (else 'missing'); ST-LPIPS (AlexNet, weights in "
      "its wheel) reported under its own name", "never a substitute under LPIPS's name"),
-    ("frame interpolation", "XVFI trained on X4K1000FPS", "an XVFI-style multi-scale flow network trained per subject "
-     "on its own frames", "no downloaded weights or data"),
+    ("frame interpolation", "XVFI trained on X4K1000FPS", "an XVFI-style multi-scale flow network trained once on "
+     "every subject's video (several motion speeds, held-out frames excluded)", "no downloaded weights or data"),
     ("RGBD captures", "ZED2 depth", "the synthetic subjects' rendered depth with Gaussian noise",
      "no depth camera here"),
     ("RGB fit", "free intrinsics", "a fixed principal point (image centre); the root rotation folded into the camera",

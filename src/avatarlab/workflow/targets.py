@@ -84,6 +84,7 @@ class Plan:
         self.all_subjects = {**self.subjects, self.real_images["name"]: self.real_images}
         self.synthetic = [n for n, s in self.subjects.items() if s["source"] == "synthetic"]
         self.image_sets = [n for n, s in self.all_subjects.items() if s["source"] in ("portraits", "images")]
+        self.videos = [n for n in self.subjects if n not in self.image_sets]  # what the interpolator learns from
         self.alphas, self.betas, self.renderers = config["alphas"], config["betas"], config["renderers"]
         self.pretrained = self.alphas + [f"{b}_from_{a}" for b in self.betas for a in self.alphas]
         self.final_recipe = config["final_recipe"]

@@ -7,6 +7,8 @@ residual refinement. Sizes are small so it trains on one subject's frames on a C
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -62,10 +64,13 @@ class SynthesisModule(nn.Module):
         return (blend + 0.1 * torch.tanh(out[:, 1:])).clamp(0, 1)
 
 
+MODEL_FORMAT = "avatarlab-interpolator-1"
+
+
 class XVFILite(nn.Module):
     def __init__(self, width: int = 32, scales: int = 3):
         super().__init__()
-        self.scales = scales
+        self.scales, self.width = scales, width
         self.flow = FlowModule(width)
         self.synthesis = SynthesisModule(width)
         # start as a cross-fade with zero motion: flow residuals, occlusion logits and refinement at zero
@@ -92,3 +97,24 @@ class XVFILite(nn.Module):
         f01, f10 = self.flows(i0, i1)
         ft0, ft1 = flow_reversal(f01, f10, t)
         return self.synthesis(i0, i1, backward_warp(i0, ft0), backward_warp(i1, ft1), ft0, ft1, t)
+
+
+def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
+    """Weights only (tensors and plain values), written atomically."""
+    from avatarlab.io import atomic_path
+
+    with atomic_path(Path(path)) as tmp:
+        torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "iterations": iterations,
+                    "state": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
+
+
+def load_interpolator(path: str | Path, device: torch.device | str = "cpu") -> XVFILite:
+    """A model.pt written by save_interpolator -> the network in eval mode; anything else stops with one line."""
+    from avatarlab.safe_load import load_tensors
+
+    content = load_tensors(Path(path), "a frame interpolator (model.pt)")
+    if not isinstance(content, dict) or content.get("format") != MODEL_FORMAT:
+        raise ValueError(f"{path}: not an avatarlab frame interpolator (expected format {MODEL_FORMAT})")
+    model = XVFILite(int(content["width"]), int(content["scales"]))
+    model.load_state_dict(content["state"])
+    return model.eval().to(device)

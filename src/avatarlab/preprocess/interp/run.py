@@ -1,10 +1,12 @@
 """The thesis' interpolation experiment on one subject (seed 002, section 4.3 / figure 54).
 
 Variants of the training frames: (a) all frames, (b) every second frame removed, (c) (b) plus the removed frames
-re-created by interpolation. The XVFI-style network trains self-supervised on the frames that (b) keeps (predict the
-middle of three), then fills the removed frames; the Farneback baseline and a plain cross-fade do the same.
-Interpolation PSNR/SSIM are measured on the removed (held-out) frames. Training checkpoints let a killed run resume
-to the same result. Writes `interp.json`, `interpolated.npz` (variant (c)'s new frames) and a comparison PNG.
+re-created by interpolation. The XVFI-style network is the one trained once on every subject's video
+(`interp/pretrain.py`, self-supervised on the frames that (b) keeps: predict the middle of three); here it fills the
+removed frames, and the Farneback baseline and a plain cross-fade do the same. Interpolation PSNR/SSIM are measured
+on the removed (held-out) frames. Writes `interp.json`, `interpolated.npz` (variant (c)'s new frames) and a
+comparison PNG. `train` (with checkpoints that let a killed run resume to the same result) serves the shared
+training.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from avatarlab.config import CPU, autocast, grad_scaler
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json, write_png
-from avatarlab.preprocess.interp.network import XVFILite
+from avatarlab.preprocess.interp.network import XVFILite, load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.provenance import code_digest
 from avatarlab.provenance import fingerprint as provenance_fingerprint
@@ -43,9 +45,11 @@ def split_variants(n: int):
     return kept, held
 
 
-def training_triplets(kept: np.ndarray) -> np.ndarray:
-    """(left, middle, right) among the frames variant (b) keeps."""
-    return np.stack([kept[:-2], kept[1:-1], kept[2:]], 1) if len(kept) >= 3 else np.zeros((0, 3), int)
+def training_triplets(kept: np.ndarray, strides=(1,)) -> np.ndarray:
+    """(left, middle, right) among the frames variant (b) keeps: neighbours `stride` kept frames apart, for every
+    stride (several motion speeds)."""
+    out = [np.stack([kept[:-2 * s], kept[s:-s], kept[2 * s:]], 1) for s in strides if len(kept) > 2 * s]
+    return np.concatenate(out) if out else np.zeros((0, 3), int)
 
 
 def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
@@ -116,20 +120,17 @@ def main(cfg, device) -> None:
     kept, held = split_variants(len(frames))
     if len(held) == 0:
         raise ValueError(f"{subject_dir}: {len(frames)} frames are too few to hold any frame out")
+    model = load_interpolator(cfg.interp.model, device)
     start = time.perf_counter()
-    checkpoint = subject_dir / "interp_checkpoint.pt"
-    model, losses = train(frames, training_triplets(kept), cfg, checkpoint, device,
-                          data={"frames": subject_dir / "frames.json", "images": subject_dir / "frames"})
-    train_seconds = time.perf_counter() - start
-    model.eval()
     with torch.no_grad():
         xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).cpu()
                           for k in range(0, len(held), 8)])
+    seconds = time.perf_counter() - start
     flow = to_tensor(np.stack([interpolate_farneback(frames_np[i - 1], frames_np[i + 1]) for i in held]))
     fade = 0.5 * (frames[held - 1] + frames[held + 1])
     target = frames[held]
-    report = {"frames": len(frames), "kept_b": len(kept), "held_out": len(held), "iterations": len(losses),
-              "train_seconds": train_seconds, "final_train_l1": losses[-1] if losses else None,
+    report = {"frames": len(frames), "kept_b": len(kept), "held_out": len(held), "model": str(cfg.interp.model),
+              "seconds_per_frame": seconds / len(held),
               "xvfi": quality(xvfi, target), "farneback": quality(flow, target), "cross_fade": quality(fade, target),
               "variants": {"a": len(frames), "b": len(kept), "c": len(kept) + len(held)}}
     out_u8 = (xvfi.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
@@ -140,11 +141,10 @@ def main(cfg, device) -> None:
                            1) for k in show]
     write_png(subject_dir / "interp_comparison.png", np.concatenate(rows, 0))
     write_json(subject_dir / "interp.json", report)
-    checkpoint.unlink(missing_ok=True)  # finished: nothing a later run could mistake for its own
     log.info("interpolation on %d held-out frames: XVFI-style PSNR %.2f dB SSIM %.4f | Farneback %.2f / %.4f | "
-             "cross-fade %.2f / %.4f (trained %d its in %.0fs)", len(held), report["xvfi"]["psnr"],
+             "cross-fade %.2f / %.4f (the shared network %s)", len(held), report["xvfi"]["psnr"],
              report["xvfi"]["ssim"], report["farneback"]["psnr"], report["farneback"]["ssim"],
-             report["cross_fade"]["psnr"], report["cross_fade"]["ssim"], len(losses), train_seconds)
+             report["cross_fade"]["psnr"], report["cross_fade"]["ssim"], cfg.interp.model)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,76 @@
+"""The frame interpolator trained once, on every video the platform has, then used for every subject.
+
+XVFI (Sim et al. 2021; seed 002, section 4.3) is a network trained on a large video set and then applied to new
+footage, not one trained per subject. Here it learns from all subjects' videos at once (the synthetic subjects and
+the real clips, each at several motion speeds): triplets (left, middle, right) of frames `stride` apart among the
+frames variant (b) keeps, for every stride in `interp.strides`, so the frames any subject's experiment holds out are
+never seen. Writes `model.pt` (weights only) and `train.json` into `interp.out_dir`; a killed run resumes.
+`python -m avatarlab.preprocess.interp.pretrain 'interp.subject_dirs=[results/tiny/subjects/synth_talk,...]'`
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from avatarlab.data.subject_dir import SubjectDir
+from avatarlab.entry import entry_point
+from avatarlab.io import write_json
+from avatarlab.preprocess.interp.network import save_interpolator
+from avatarlab.preprocess.interp.run import split_variants, to_tensor, train, training_triplets
+
+log = logging.getLogger(__name__)
+READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
+
+
+def gather(subject_dirs, strides) -> tuple[torch.Tensor, np.ndarray, dict]:
+    """Every subject's frames in one tensor (all crops have the scale's size) and the triplets into it."""
+    frames, triplets, counts, offset = [], [], {}, 0
+    for folder in subject_dirs:
+        images = to_tensor(SubjectDir(folder).frames())
+        kept, _ = split_variants(len(images))
+        found = training_triplets(kept, strides)
+        frames.append(images)
+        triplets.append(found + offset)
+        counts[Path(folder).name] = {"frames": len(images), "triplets": len(found)}
+        offset += len(images)
+    sizes = {tuple(f.shape[1:]) for f in frames}
+    if len(sizes) > 1:
+        raise ValueError(f"interp.subject_dirs: the subjects' frames differ in size {sorted(sizes)}")
+    return torch.cat(frames), np.concatenate(triplets), counts
+
+
+def train_interpolator(cfg, device) -> dict:
+    """The step: trains on every subject in `interp.subject_dirs`, writes model.pt and train.json -> the report."""
+    ip = cfg.interp
+    out_dir = Path(ip.out_dir)
+    if not ip.subject_dirs:
+        raise ValueError("interp.subject_dirs: no subject to learn interpolation from")
+    frames, triplets, counts = gather(list(ip.subject_dirs), list(ip.strides))
+    if len(triplets) == 0:
+        raise ValueError(f"interp.subject_dirs: too few frames for a triplet at strides {list(ip.strides)}")
+    start = time.perf_counter()
+    data = {f"frames_{k}": Path(d) / "frames.json" for k, d in enumerate(ip.subject_dirs)}
+    model, losses = train(frames, triplets, cfg, out_dir / "checkpoint.pt", device, data=data)
+    report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets), "iterations": len(losses),
+              "train_seconds": time.perf_counter() - start, "final_train_l1": float(np.mean(losses[-20:])),
+              "first_train_l1": float(np.mean(losses[:20]))}
+    save_interpolator(out_dir / "model.pt", model, len(losses))
+    write_json(out_dir / "train.json", report)
+    (out_dir / "checkpoint.pt").unlink(missing_ok=True)  # finished: nothing a later run could mistake for its own
+    return report
+
+
+@entry_point(READS)
+def main(cfg, device) -> None:
+    report = train_interpolator(cfg, device)
+    log.info("frame interpolator: %d triplets of %d subjects (strides %s), %d iterations in %.0f s, train L1 "
+             "%.4f -> %.4f", report["triplets"], len(report["subjects"]), report["strides"], report["iterations"],
+             report["train_seconds"], report["first_train_l1"], report["final_train_l1"])
+
+
+if __name__ == "__main__":
+    main()
