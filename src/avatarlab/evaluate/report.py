@@ -82,6 +82,13 @@ SUBSTITUTIONS = [
      "two CPU cores and two hours; `scale=paper` restores the dissertation's sizes"),
     ("speech corpus", "recorded GRID speakers", "GRID-grammar sentences spoken by espeak-ng voices; real GRID clips "
      "only as a test set", "no downloads; GRID audio is not redistributable here"),
+    ("speech targets and metric", "each speaker's landmarks; lip error on them", "seed 000 learns each speaker's "
+     "motion placed on Pr(B0) (the utterance's mean shape removed); the lip error is reported raw and on the motion, "
+     "beside a still mouth and a phoneme lookup", "its landmarks are Pr(B0) plus viseme offsets and cannot carry a "
+     "speaker's face; a raw error would mostly measure the face"),
+    ("256² / 512² models", "the chosen recipe trained at 256² and 512² (300 000 iterations each)", "the final "
+     "recipe's model continued from the previous resolution with its own strategy (β6)", "the dissertation names "
+     "the resolutions and the iterations, not how each one starts"),
     ("avatar test split", "INSTA protocol (last 350 frames)", "for multi-clip real subjects the last clip is held out",
      "an avatar must render a recording it never saw"),
 ]
