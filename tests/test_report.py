@@ -55,6 +55,7 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
     for i, psnr in enumerate([26.0, 26.05, 24.0]):
         write_avatar(results, "synth_talk", "base", f"beta{i + 1}_from_alpha1", f"beta{i + 1}_from_alpha1", psnr)
     write_avatar(results, "synth_talk", "base", final, final, 26.1)
+    write_avatar(results, "synth_turns", "base", final, final, 20.0)  # an interpolation subject: no beta ranking
     out = tmp_path / "report"
     summary = build(results, out, final, "smoke")
     assert summary["rows"]["final_avatars"] == 1 and summary["rows"]["alpha1_vs_alpha2"] == 4
@@ -75,7 +76,8 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
     assert "alpha2 minus alpha1, paired by seed" in readme
     claims = (out / "tables" / "claims.md").read_text()
     # beta6 (26.10 dB) is first but only 0.05 dB above beta2: within the seed noise (pooled SD ~0.15 dB)
-    assert "within noise: beta6 ties the best" in claims and "rank 1 of 4" in claims
+    assert "within noise: beta6 ties the best" in claims and "synth_talk: beta6_from_alpha2 26.10 dB" in claims
+    assert "rank 1 of 4" in claims and "synth_turns: beta6" not in claims and "20.00 dB" not in claims
     assert "not testable: the INSTA videos" in claims
 
 
