@@ -75,3 +75,37 @@ def test_a_resumed_step_continues_its_run_and_a_rerun_leaves_one_run(store, tmp_
     left = runs_of(results, f"tags.output = '{out.resolve()}'")
     assert [r.info.run_id for r in left] == [second] and second != first
     assert client(results).get_run(second).data.tags["stage"] == "pretrain"
+
+
+def test_two_workflows_starting_at_once_both_get_the_dashboard_view(store, monkeypatch):
+    """Seen on the PostgreSQL server: two `init_tracking` jobs inserted the view tag at once and the second failed
+    (unique key). Now a view already in place is left alone, and losing that race is not an error."""
+    import json
+
+    from mlflow.tracking import MlflowClient
+
+    from avatarlab.tracking import VIEW_COLUMNS, VIEW_KEY, init_store, set_dashboard_view
+
+    results, _ = store
+    experiment = client(results).get_experiment_by_name("avatarlab-smoke").experiment_id
+    real, calls = MlflowClient.set_experiment_tag, []
+
+    def counted(self, *args, **kwargs):
+        calls.append(args)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(MlflowClient, "set_experiment_tag", counted)
+    init_store(results, scales=("smoke",))
+    assert calls == [], "the view is in place already: no second write"
+    key = f"mlflow.sharedViewState.{VIEW_KEY}"
+    real(client(results), experiment, key, "an older view")
+
+    def raced(self, experiment_id, name, value):  # the other workflow's insert lands first, ours then fails
+        monkeypatch.setattr(MlflowClient, "set_experiment_tag", real)
+        real(self, experiment_id, name, value)
+        raise RuntimeError("duplicate key value violates unique constraint \"experiment_tag_pk\"")
+
+    monkeypatch.setattr(MlflowClient, "set_experiment_tag", raced)
+    set_dashboard_view(experiment, results)
+    view = json.loads(client(results).get_experiment(experiment).tags[key])
+    assert view["selectedColumns"] == VIEW_COLUMNS

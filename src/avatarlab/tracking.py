@@ -111,9 +111,16 @@ def set_dashboard_view(experiment_id: str, results_dir: str | Path) -> None:
     """The shared view `?viewStateShareKey=avatarlab` of the experiment's runs table: VIEW_COLUMNS as visible
     columns, newest runs first."""
     mlflow = _mlflow(results_dir)
-    state = {"selectedColumns": VIEW_COLUMNS, "orderByKey": "attributes.start_time", "orderByAsc": False}
-    mlflow.tracking.MlflowClient().set_experiment_tag(experiment_id, f"mlflow.sharedViewState.{VIEW_KEY}",
-                                                      json.dumps(state))
+    client, key = mlflow.tracking.MlflowClient(), f"mlflow.sharedViewState.{VIEW_KEY}"
+    value = json.dumps({"selectedColumns": VIEW_COLUMNS, "orderByKey": "attributes.start_time", "orderByAsc": False})
+    if client.get_experiment(experiment_id).tags.get(key) == value:
+        return
+    try:
+        client.set_experiment_tag(experiment_id, key, value)
+    except Exception:  # two workflows starting at once against one server: the other one's insert came first
+        if client.get_experiment(experiment_id).tags.get(key) is None:
+            raise
+        client.set_experiment_tag(experiment_id, key, value)  # the row exists now: this is an update
 
 
 def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
