@@ -77,7 +77,7 @@ def test_networks_stay_on_the_device():
 
 
 def test_interpolation_trains_in_mixed_precision_like_float32(tmp_path):
-    from avatarlab.preprocess.interp.run import train, training_triplets
+    from avatarlab.preprocess.interp.training import train, training_triplets
 
     frames = torch.rand(9, 3, 16, 16, generator=torch.Generator().manual_seed(0))
     triplets = training_triplets(np.arange(0, 9, 2))
@@ -119,7 +119,7 @@ def test_speech_models_train_in_mixed_precision(head_model):
 @needs_cuda
 def test_fits_renders_and_networks_on_cuda_match_the_cpu(tmp_path, head_model):
     from avatarlab.data.portraits import render_portraits
-    from avatarlab.preprocess.interp.run import train, training_triplets
+    from avatarlab.preprocess.interp.training import train, training_triplets
 
     cfg = compose_config(["scale=smoke", "subject=portraits"])
     cpu_params, cpu_chunks, _ = render_portraits(cfg, torch.device("cpu"))

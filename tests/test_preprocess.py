@@ -171,7 +171,7 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
 def test_interpolation_training_resumes_to_the_same_result(tmp_path):
     from omegaconf import OmegaConf
 
-    from avatarlab.preprocess.interp.run import train, training_triplets
+    from avatarlab.preprocess.interp.training import train, training_triplets
 
     cfg = interp_config()
     frames = torch.rand(9, 3, 16, 16)

@@ -20,7 +20,7 @@ from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import write_json
 from avatarlab.preprocess.interp.network import save_interpolator
-from avatarlab.preprocess.interp.run import split_variants, to_tensor, train, training_triplets
+from avatarlab.preprocess.interp.training import split_variants, to_tensor, train, training_triplets
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
