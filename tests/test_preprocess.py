@@ -180,7 +180,7 @@ def test_interpolation_training_resumes_to_the_same_result(tmp_path):
     # "killed" after 3 steps: a checkpoint at step 3 exists; the rerun resumes from it
     cfg_short = OmegaConf.merge(cfg, {"interp": {"iterations": 3}})
     train(frames, triplets, cfg_short, tmp_path / "resumed.pt")
-    state = torch.load(tmp_path / "resumed.pt", weights_only=False)
+    state = torch.load(tmp_path / "resumed.pt", weights_only=True)
     state["fingerprint"] = state["fingerprint"].replace("iterations: 3", "iterations: 6")
     torch.save(state, tmp_path / "resumed.pt")
     resumed, losses = train(frames, triplets, cfg, tmp_path / "resumed.pt")
