@@ -334,7 +334,7 @@ def test_paper_scale_sizes_match_the_dissertation():
     assert s.renderer_experiment_image_size // s.renderer_experiment_feature_size == 8  # three x2 stages
     assert (s.finetune_iterations, s.finetune_test_frames, s.mouth_open_frames) == (1000, 350, 30)
     assert (s.fit_rigid_iterations, s.fit_keyframe_iterations) == (200, 800)
-    assert s.speech_speakers == 34 and s.speech_window_hidden == 3000
+    assert s.speech_speakers == 34 and s.speech_window_hidden == 3000 and s.speech_epochs == 400  # seed 000
 
 
 def test_device_comes_from_the_config():
