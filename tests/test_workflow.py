@@ -1,7 +1,8 @@
 """The Snakemake workflow as a user runs it: one smoke-scale run of everything, a test per stage, then reruns.
 
-The tests after `test_report` change the run (they edit copies of the code and config and force steps), so they
-come last in this file; everything before them reads the finished run.
+The tests after `test_report` add to the run (a sweep, a real video) or edit copies of the code and config and
+force steps, so they come last in this file, the one that retrains with changed code last of all (after it every
+later run would retrain the pretraining chain); everything before them reads the finished run.
 """
 import csv
 import json
@@ -288,6 +289,30 @@ def test_edits_rerun_exactly_what_depends_on_them(smoke_run, workdir, tmp_path):
 
 
 @pytest.mark.slow
+def test_real_video_subject_runs_end_to_end(smoke_run, workdir):
+    """The real clips as one more subject of the finished run: only its own steps run (preprocessing, the
+    final-recipe avatar on the pretrained model already there, its evaluation, applications and the report)."""
+    clips = SHARED_DATA / "obama"
+    if not clips.is_dir():
+        pytest.skip(f"{clips} is absent (real clips live in ../shared/data on this workplace)")
+    subjects = f'subjects={{obama: {{source: video, path: "{clips}/*.mp4", fps: 2, test_clips: 1}}}}'
+    ran = jobs_planned(snakemake(workdir, subjects, "ablation_subjects=[]", "interp_subjects=[]", "transfers=[]",
+                                 "speech_subjects=[]"))
+    assert ran["fit_rgb"] == 1 and not {"pretrain_alpha", "pretrain_beta", "fit_rgbd"} & set(ran), ran
+    folder = workdir / "results" / "smoke" / "subjects" / "obama"
+    frames = json.loads((folder / "frames.json").read_text())
+    assert frames["original_size"] == [720, 1280] and frames["count"] == 12
+    assert json.loads((folder / "landmarks.json").read_text())["detection_rate"] >= 0.9
+    fit = json.loads((folder / "fit_rgb.json").read_text())
+    assert fit["landmark_nme"] < 0.1 and "truth" not in fit
+    ev = json.loads((workdir / "results/smoke/avatars/obama/final/beta6_from_alpha2/eval.json").read_text())
+    assert ev["split"] == "held_out_clips" and len(set(frames["sources"][i] for i in ev["test_indices"])) == 1
+    again = snakemake(workdir, subjects, "ablation_subjects=[]", "interp_subjects=[]", "transfers=[]",
+                      "speech_subjects=[]", "-n")
+    assert jobs_planned(again) == {}
+
+
+@pytest.mark.slow
 def test_forcerun_retrains_and_changed_code_gives_other_weights(smoke_run, workdir, tmp_path):
     from avatarlab.model.head_nerf import load_model_file
 
@@ -354,26 +379,6 @@ def check_speech(results: Path, summary: dict) -> None:
                            capture_output=True, text=True)
     assert "Audio: aac" in probe.stderr and "Video:" in probe.stderr
 
-
-
-@pytest.mark.slow
-def test_real_video_subject_runs_end_to_end(workdir):
-    clips = SHARED_DATA / "obama"
-    if not clips.is_dir():
-        pytest.skip(f"{clips} is absent (real clips live in ../shared/data on this workplace)")
-    subjects = f'subjects={{obama: {{source: video, path: "{clips}/*.mp4", fps: 2, test_clips: 1}}}}'
-    snakemake(workdir, subjects, "ablation_subjects=[]", "interp_subjects=[]", "transfers=[]", "speech_subjects=[]")
-    folder = workdir / "results" / "smoke" / "subjects" / "obama"
-    frames = json.loads((folder / "frames.json").read_text())
-    assert frames["original_size"] == [720, 1280] and frames["count"] == 12
-    assert json.loads((folder / "landmarks.json").read_text())["detection_rate"] >= 0.9
-    fit = json.loads((folder / "fit_rgb.json").read_text())
-    assert fit["landmark_nme"] < 0.1 and "truth" not in fit
-    ev = json.loads((workdir / "results/smoke/avatars/obama/final/beta6_from_alpha2/eval.json").read_text())
-    assert ev["split"] == "held_out_clips" and len(set(frames["sources"][i] for i in ev["test_indices"])) == 1
-    again = snakemake(workdir, subjects, "ablation_subjects=[]", "interp_subjects=[]", "transfers=[]",
-                      "speech_subjects=[]", "-n")
-    assert jobs_planned(again) == {}
 
 
 def test_grid_clip_frames_and_landmarks():

@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import json
+from functools import lru_cache
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1]  # the folder that holds the avatarlab package
@@ -31,8 +32,33 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
 
 def source_digest(path: str | Path) -> str:
     """sha256 of a Python file's syntax tree without docstrings (comments and layout are not in the tree)."""
-    tree = _strip_docstrings(ast.parse(Path(path).read_text(), filename=str(path)))
+    return _text_digest(Path(path).read_text(), str(path))
+
+
+# Parsing is the cost (the Snakefile digests ~25 entry modules sharing most of their imports, at every start of
+# Snakemake, in every cluster job too); the caches are keyed by the source text itself, so an edit is never missed.
+@lru_cache(maxsize=4096)
+def _text_digest(text: str, filename: str) -> str:
+    tree = _strip_docstrings(ast.parse(text, filename=filename))
     return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
+
+
+@lru_cache(maxsize=4096)
+def _imports(text: str, package: str) -> tuple[str, ...]:
+    """The avatarlab modules one source text imports (relative imports resolved against `package`)."""
+    found = []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Import):
+            found += [a.name for a in node.names if a.name.startswith("avatarlab")]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = package.split(".")
+                base = ".".join(pkg[: len(pkg) - node.level + 1] + ([base] if base else []))
+            if base.startswith("avatarlab"):
+                found.append(base)
+                found += [f"{base}.{a.name}" for a in node.names]
+    return tuple(found)
 
 
 def module_path(name: str, src: Path = SRC) -> Path:
@@ -55,17 +81,7 @@ def imported_modules(*entry_modules: str, src: Path = SRC) -> list[str]:
         seen.add(name)
         parts = name.split(".")
         package = name if path.name == "__init__.py" else ".".join(parts[:-1])
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Import):
-                todo += [a.name for a in node.names if a.name.startswith("avatarlab")]
-            elif isinstance(node, ast.ImportFrom):
-                base = node.module or ""
-                if node.level:
-                    pkg = package.split(".")
-                    base = ".".join(pkg[: len(pkg) - node.level + 1] + ([base] if base else []))
-                if base.startswith("avatarlab"):
-                    todo.append(base)
-                    todo += [f"{base}.{a.name}" for a in node.names]
+        todo += _imports(path.read_text(), package)
         while len(parts) > 1:  # importing a.b.c runs a/__init__ and a/b/__init__
             parts = parts[:-1]
             todo.append(".".join(parts))
