@@ -118,6 +118,8 @@ class FitRGBD:
     block_iterations: list[int] = MISSING
     texture_iterations: int = at_least(0)
     block_weights: list[float] = MISSING
+    prior_weight: float = at_least(0)
+    cosine_decay: bool = MISSING
     depth_noise_m: float = at_least(0)
     crop_margin_m: float = at_least(0)
     max_points: int = at_least(1)
