@@ -235,3 +235,53 @@ def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_pat
     assert part["gain"]["psnr"]["gain"] == pytest.approx(part["model"]["psnr"] - part["gain"]["psnr"]["baseline"])
     assert [pt["step"] for pt in report["curve"]] == [7, 8, 9, 10] and report["step"] == 10  # 4 snapshots by default
     assert grid.shape[1] == 3 * 64, "rows: truth, model, best baseline"
+
+
+@pytest.mark.slow
+def test_betas_from_alpha2_and_their_avatars_keep_the_mouth_interior(tmp_path, monkeypatch):
+    """Seed 002, 3.4: alpha2 ends on the mouth-interior head; a beta continued from it, and the final-recipe avatar
+    fine-tuned from that beta, draw their synthetic samples from the same head (from alpha1: the plain head), and
+    each run names the model it continues."""
+    from avatarlab.data.synthetic import SyntheticGenerator
+    from avatarlab.model.head_nerf import load_model_file, synthetic_mouth
+    from avatarlab.train import finetune, pretrain
+
+    faces = []  # the face count of the head each synthetic draw comes from (the mouth interior adds faces)
+    sample = SyntheticGenerator.sample
+    monkeypatch.setattr(SyntheticGenerator, "sample",
+                        lambda self, *a, **k: faces.append(int(self.model.faces.shape[0])) or sample(self, *a, **k))
+    fake_real_set(tmp_path / "portraits")
+    common = tiny_model_overrides() + ["model.depth=5", f"pretrain.real_subject_dir={tmp_path / 'portraits'}"]
+
+    def pretrain_run(name, *extra):
+        faces.clear()
+        cfg = step_cfg(pretrain, common + [f"pretrain.name={name}", f"pretrain.out_dir={tmp_path / name}", *extra])
+        _, _, report = pretrain.pretrain_model(cfg, torch.device("cpu"))
+        return report, sorted(set(faces)), load_model_file(tmp_path / name / "model.pt")[1]
+
+    always_synthetic = ["strategy.p_min=1.0", "strategy.p_max=1.0"]
+    a1, a1_heads, a1_file = pretrain_run("alpha1", "strategy=alpha1")
+    a2, a2_heads, a2_file = pretrain_run("alpha2", "strategy=alpha2")
+    plain, with_mouth = a1_heads[0], max(a2_heads)
+    assert a1_heads == [plain] and a2_heads == [plain, with_mouth] and with_mouth > plain
+    assert (synthetic_mouth(a1_file), synthetic_mouth(a2_file)) == (False, True)
+    b1, b1_heads, b1_file = pretrain_run("beta5_from_alpha1", "strategy=beta5", *always_synthetic,
+                                         f"pretrain.init_model={tmp_path / 'alpha1' / 'model.pt'}")
+    b2, b2_heads, b2_file = pretrain_run("beta5_from_alpha2", "strategy=beta5", *always_synthetic,
+                                         f"pretrain.init_model={tmp_path / 'alpha2' / 'model.pt'}")
+    assert (b1["init"], b1_heads, b1["mouth_from"], synthetic_mouth(b1_file)) == ("alpha1", [plain], None, False)
+    assert (b2["init"], b2_heads, synthetic_mouth(b2_file)) == ("alpha2", [with_mouth], True)
+    assert b2["mouth_from"] == b2["M"] - 1, "every continued iteration draws from the mouth-interior head"
+    # a file written before the flag existed answers from its strategy's mouth phase
+    assert synthetic_mouth({k: v for k, v in a2_file.items() if k != "synthetic_mouth"})
+
+    subject = fake_video_subject(tmp_path / "subject", count=8)
+    for parent, head in (("beta5_from_alpha1", plain), ("beta5_from_alpha2", with_mouth)):
+        faces.clear()
+        cfg = step_cfg(finetune, tiny_model_overrides() + [
+            "model.depth=5", "finetune=final", "finetune.p_max=1.0", f"finetune.subject_dir={subject}",
+            f"finetune.init_model={tmp_path / parent / 'model.pt'}", "finetune.test_frames=2",
+            f"finetune.out_dir={tmp_path / 'avatar' / parent}", "finetune.iterations=4"])
+        _, _, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
+        assert sorted(set(faces)) == [head], parent
+        assert report["synthetic_samples"] == ("mouth interior" if head == with_mouth else "plain head")

@@ -97,6 +97,16 @@ def model_file(net: HeadNeRFModel, step: int, config: dict, **extra) -> dict:
             "config": config, **extra}
 
 
+def synthetic_mouth(content: dict) -> bool:
+    """Whether a model file's synthetic samples came from the mouth-interior head when its training ended: alpha2's
+    last 10 000 iterations (seed 002, 3.4, fig. 28) and every model continued from it, so a continuation (the beta
+    runs from alpha2, their avatars) keeps drawing them from that head. Files written before the flag existed answer
+    from their strategy's mouth phase."""
+    if "synthetic_mouth" in content:
+        return bool(content["synthetic_mouth"])
+    return ((content.get("config") or {}).get("strategy") or {}).get("mouth_from") is not None
+
+
 def load_model_file(path: str | Path, device: torch.device | str = "cpu") -> tuple[HeadNeRFModel, dict]:
     """A model.pt written by `model_file` -> (network in eval mode on `device`, the file's other contents).
     Anything else - a crafted pickle, another format - stops with one line naming the file."""

@@ -1,7 +1,8 @@
 """Per-subject avatar: a pretrained head model fine-tuned on one subject's video (seed 002, section 4.1).
 
 The recipe is the `finetune` config group: `base` (the ablation fine-tunes of sections 4.2-4.3: real frames only)
-or `final` (the final recipe: + z-augmentation and a synthetic share decaying linearly to 0). Both keep the
+or `final` (the final recipe: + z-augmentation and a synthetic share decaying linearly to 0, its synthetic samples
+from the head the pretrained model ended with: the mouth interior for alpha2 and the betas from it). Both keep the
 subject's fitted shape and texture fixed (no offsets) and the first CNeRF MLP layers frozen. The test frames
 (data/splits.py) are never trained on; scoring them is the evaluation step's job (evaluate/avatar.py).
 Writes `model.pt` and `train.json`.
@@ -24,7 +25,7 @@ from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.entry import entry_point, step_settings
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
-from avatarlab.model.head_nerf import load_model_file, model_file
+from avatarlab.model.head_nerf import load_model_file, model_file, synthetic_mouth
 from avatarlab.model.losses import perceptual_network
 from avatarlab.provenance import code_digest, fingerprint
 from avatarlab.tracking import log_history, start_run
@@ -60,10 +61,11 @@ def finetune_avatar(cfg, device):
     size = int(parent["spec"]["feature_size"]) * 8
     real = RealImageSet(ft.subject_dir, size, split.train, ft.interpolated if ft.frames_variant == "c" else None)
     recipe = recipe_of(cfg, int(parent["step"]))
-    synthetic = None
-    if recipe.schedule.p_max > 0:
-        synthetic = SyntheticGenerator(load_head_model(cfg.head_model), real.params, cfg.synthetic, size,
-                                       tuple(cfg.render.background), device, fixed_identity=True)
+    synthetic, mouth = None, synthetic_mouth(parent)
+    if recipe.schedule.p_max > 0:  # the head the parent's synthetic samples ended with (the mouth after alpha2)
+        head = load_head_model(OmegaConf.merge(cfg.head_model, {"mouth_interior": True}) if mouth else cfg.head_model)
+        synthetic = SyntheticGenerator(head, real.params, cfg.synthetic, size, tuple(cfg.render.background), device,
+                                       fixed_identity=True)
     source = BatchSource(synthetic=synthetic, real=real, schedule=recipe.schedule, batch_size=recipe.batch,
                          device=device, z_aug=recipe.z_aug, z_aug_range=recipe.z_aug_range)
     settings = step_settings(cfg, tuple(k for k in READS if k != "tracking"))
@@ -99,11 +101,12 @@ def finetune_avatar(cfg, device):
                        on_progress=lambda entries: log_history(run, entries), on_snapshot=snapshot)
         with atomic_path(out_dir / "model.pt") as tmp:
             torch.save(model_file(net, result.step, config, name=run_name, run_id=run_id, stage="finetune",
-                                  seconds=result.seconds), tmp)
+                                  seconds=result.seconds, synthetic_mouth=mouth), tmp)
         report = {"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "frames_variant": ft.frames_variant,
                   "split": split.protocol, "train_frames": len(split.train), "train_indices": split.train.tolist(),
                   "test_indices": split.test.tolist(), "iterations": result.step - recipe.start,
                   "train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
+                  "synthetic_samples": "none" if synthetic is None else ("mouth interior" if mouth else "plain head"),
                   "history": result.history, "run_id": run_id}
         write_json(out_dir / "train.json", report)
         if run is not None:

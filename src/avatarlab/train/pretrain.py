@@ -4,12 +4,13 @@ Each iteration draws a batch whose samples are synthetic with probability p(n) (
 image set: its frames, masks and per-image RGB fits); the loop is train/loop.py. alpha1/alpha2 train from scratch
 (alpha2 renders its synthetic samples with the mouth-interior head from `mouth_from` on); a beta strategy continues
 its alpha model (`pretrain.init_model`) from iteration M with real images, the synthetic share of its schedule and
-z-augmentation. `pretrain.iterations` sets a fixed synthetic-only budget instead (the renderer experiment).
+z-augmentation, its synthetic samples from the head its parent ended with (the mouth interior after alpha2). `pretrain.iterations` sets a fixed synthetic-only budget instead (the renderer experiment).
 Writes `model.pt` and `train.json` (history, time, samples/s); scoring is the evaluation step's job.
 `python -m avatarlab.train.pretrain strategy=beta6 pretrain.init_model=.../alpha2/model.pt`
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.entry import ConfigError, entry_point, step_settings
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
-from avatarlab.model.head_nerf import build_model, load_model_file, model_file
+from avatarlab.model.head_nerf import build_model, load_model_file, model_file, synthetic_mouth
 from avatarlab.model.losses import perceptual_network
 from avatarlab.provenance import code_digest, fingerprint
 from avatarlab.tracking import log_history, start_run
@@ -66,20 +67,27 @@ def pretrain_model(cfg, device):
     background = tuple(cfg.render.background)
     synthetic = SyntheticGenerator(head, real.params, cfg.synthetic, size, background, device)
     mouth = None
-    if schedule.mouth_from is not None:
+
+    def mouth_generator():
         mouth_head = load_head_model(OmegaConf.merge(cfg.head_model, {"mouth_interior": True}))
-        mouth = SyntheticGenerator(mouth_head, real.params, cfg.synthetic, size, background, device)
+        return SyntheticGenerator(mouth_head, real.params, cfg.synthetic, size, background, device)
+
+    if schedule.mouth_from is not None:
+        mouth = mouth_generator()
     torch.manual_seed(int(cfg.seed))
     net = build_model(cfg, head).to(device)
-    start = 0
+    start, init_name = 0, ""
     if strategy.init is not None and pre.iterations is None:  # a beta strategy continues its alpha model
         parent, content = load_model_file(pre.init_model, device)
         if int(content["step"]) != schedule.M:
             raise ConfigError(f"{pre.init_model}: the parent stopped at iteration {content['step']}, strategy "
                               f"{strategy.name} continues from M = {schedule.M} (trained with another alpha budget?)")
         net.load_state_dict(parent.state_dict())
-        start = schedule.M
-        log.info("%s continues %s from iteration %d", name, pre.init_model, start)
+        start, init_name = schedule.M, str(content.get("name") or strategy.init)
+        if synthetic_mouth(content) and mouth is None:  # continuing alpha2: its synthetic samples keep the mouth
+            schedule, mouth = dataclasses.replace(schedule, mouth_from=start - 1), mouth_generator()
+        log.info("%s continues %s from iteration %d%s", name, pre.init_model, start,
+                 " (synthetic samples with the mouth interior, as its parent's)" if mouth is not None else "")
     recipe = recipe_of(cfg, schedule, start)
     source = BatchSource(synthetic=synthetic, real=real, schedule=schedule, batch_size=recipe.batch, device=device,
                          z_aug=recipe.z_aug, z_aug_range=recipe.z_aug_range, synthetic_mouth=mouth)
@@ -88,7 +96,7 @@ def pretrain_model(cfg, device):
             "frames": Path(pre.real_subject_dir) / "frames.json", "parent": pre.init_model if start else None}
     checkpoint = Checkpoint(out_dir / "checkpoint.pt", fingerprint(settings, code_digest(__spec__.name), data))
     resume = checkpoint.load()
-    tags = {"strategy": name, "renderer": cfg.model.renderer, "init": strategy.init or "", "seed": int(cfg.seed)}
+    tags = {"strategy": name, "renderer": cfg.model.renderer, "init": init_name, "seed": int(cfg.seed)}
     with start_run(cfg, "pretrain", name, tags, run_id=(resume or {}).get("run_id"), output=out_dir) as run:
         run_id = run.info.run_id if run is not None else None
         if run is not None and resume is None:
@@ -102,8 +110,10 @@ def pretrain_model(cfg, device):
                        on_progress=lambda entries: log_history(run, entries))
         config = OmegaConf.to_container(cfg, resolve=True)
         with atomic_path(out_dir / "model.pt") as tmp:
-            torch.save(model_file(net, result.step, config, name=name, run_id=run_id, stage="pretrain"), tmp)
-        report = {"name": name, "strategy": strategy.name, "renderer": cfg.model.renderer, "M": schedule.M,
+            torch.save(model_file(net, result.step, config, name=name, run_id=run_id, stage="pretrain",
+                                  synthetic_mouth=mouth is not None), tmp)
+        report = {"name": name, "strategy": strategy.name, "init": init_name, "mouth_from": schedule.mouth_from,
+                  "renderer": cfg.model.renderer, "M": schedule.M,
                   "N": schedule.N, "start_step": start, "iterations": result.step - start, "seconds": result.seconds,
                   "samples_per_second": result.samples_per_second, "batch": recipe.batch, "image_size": size,
                   "history": result.history, "run_id": run_id}
