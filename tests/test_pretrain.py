@@ -368,3 +368,36 @@ def test_training_on_cuda_matches_the_cpu(tmp_path):
     net, gpu, _ = short_training(tmp_path, "cuda", "device=cuda")
     assert next(net.parameters()).device.type == "cuda"
     assert gpu.history[-1]["psnr"] == pytest.approx(cpu.history[-1]["psnr"], abs=0.5)
+
+
+def test_controlled_sweeps_move_one_control_and_measure_whether_a_model_follows_it():
+    """evaluate/controls.py (figs. 27, 29-32): each variant differs from the frame in its control only; the response
+    correlation is 1 for a model that changes as the head model does, 0 for one that ignores the control."""
+    from omegaconf import OmegaConf
+
+    from avatarlab.evaluate.controls import response_correlation, variants
+    from avatarlab.render.camera import orbit_camera
+
+    cfg = OmegaConf.create({"jaw_rad": [0.0, 0.2, 0.4], "neck_deg": [-20, 0, 20], "distance_offsets": [-0.1, 0, 0.1],
+                            "expression_values": [-1, 0, 1]})
+    params = {"shape": torch.randn(1, 5), "expression": torch.randn(1, 4), "pose": torch.randn(1, 15) * 0.1,
+              "texture": torch.randn(1, 3), "lighting": torch.randn(1, 9, 3)}
+    camera = orbit_camera(torch.tensor([1.0]), image_size=(32, 32), focal=80.0)
+    jaw, cams, values = variants(params, camera, "jaw", cfg)
+    assert values == [0.0, 0.2, 0.4] and torch.equal(jaw["pose"][:, 6], torch.tensor(values))
+    keep = torch.ones(15, dtype=torch.bool)
+    keep[6] = False
+    assert torch.equal(jaw["pose"][:, keep], params["pose"][:, keep].expand(3, -1))
+    assert torch.equal(jaw["expression"], params["expression"].expand(3, -1)) and torch.equal(cams.t, camera.t.expand(3, -1))
+    neck, _, _ = variants(params, camera, "neck", cfg)
+    assert torch.allclose(neck["pose"][:, 4], torch.deg2rad(torch.tensor([-20.0, 0, 20])))
+    far, cams, _ = variants(params, camera, "distance", cfg)
+    assert torch.allclose(cams.t[:, 2] - camera.t[0, 2], torch.tensor([-0.1, 0, 0.1]))
+    assert torch.equal(far["pose"], params["pose"].expand(3, -1))
+    fitted, _, values = variants(params, camera, "fitted", cfg)
+    assert values == [0.0] and torch.equal(fitted["pose"], params["pose"])
+    truth = torch.rand(3, 3, 8, 8)
+    masks = torch.ones(3, 1, 8, 8)
+    assert response_correlation(truth * 0.5 + 0.1, truth, masks) == pytest.approx(1.0)
+    assert response_correlation(truth[:1].expand(3, -1, -1, -1), truth, masks) == 0.0
+    assert response_correlation(truth[:1], truth[:1], masks[:1]) is None

@@ -133,6 +133,34 @@ def test_pretraining_stage(smoke_run):
 
 
 @pytest.mark.slow
+def test_pretrained_models_under_controlled_sweeps(smoke_run):
+    """Figures 27, 29-32: every figure of workflow/config.yaml's control_figures, its models' rows under their head
+    model rows on each video subject's held-out frame, scored beside its baselines; in the report."""
+    import yaml
+
+    figures = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())["control_figures"]
+    assert {spec["control"] for spec in figures.values()} >= {"fitted", "jaw", "distance", "neck"}
+    for name, spec in figures.items():
+        report = json.loads((smoke_run / "smoke" / "pretrain" / "controls" / f"{name}.json").read_text())
+        assert report["control"] == spec["control"] and list(report["models"]) == spec["models"]
+        assert [f["subject"] for f in report["frames"]] == ["synth_talk", "synth_turns"]
+        columns = 1 if spec["control"] == "fitted" else 5
+        assert len(report["values"]) == columns
+        for model, scores in report["models"].items():
+            assert np.isfinite(scores["model"]["psnr_head"]) and scores["synthetic_mouth"] == ("alpha2" in model)
+            baselines = {"mean_colour"} | (set() if spec["control"] == "fitted" else {"unswept"})
+            assert set(scores["baselines"]) == baselines
+            assert (scores["response_correlation"] is None) == (spec["control"] == "fitted")
+        size = report["image_size"]
+        grid = Image.open(smoke_run / "smoke" / "pretrain" / "controls" / f"{name}.png")
+        assert grid.size == (150 + (columns + 1) * size, 2 * len(spec["models"]) * 2 * size)
+    with open(smoke_run / "smoke" / "report" / "tables" / "controls.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == sum(len(spec["models"]) for spec in figures.values())
+    assert all(r["gain"] and r["mean_colour_psnr_head"] for r in rows)
+
+
+@pytest.mark.slow
 def test_avatar_stage(smoke_run):
     results = smoke_run / "smoke"
     psnr = {}
@@ -276,7 +304,7 @@ def test_edits_rerun_exactly_what_depends_on_them(smoke_run, workdir, tmp_path):
     beta5.write_text(beta5.read_text() + "p_min: 0.2\np_max: 0.2\n")
     planned = dry()
     assert planned == {"pretrain_beta": 2, "evaluate_pretrained": 2, "finetune_avatar": 2, "evaluate_avatar": 2,
-                       "report_tables": 1}, "beta5 and its descendants only"
+                       "control_figure": 1, "report_tables": 1}, "beta5 and its descendants only (fig32_neck)"
     beta5.write_text(beta5.read_text().replace("p_min: 0.2\np_max: 0.2\n", ""))
     speech = jobs_planned(snakemake(workdir, "-n", "hydra_overrides=[speech.lr=0.002]"))
     # the speech steps only (the corpus reads the speech section too), no preprocessing, pretraining or avatar

@@ -130,6 +130,12 @@ def test_plan_lists_the_dissertations_experiments():
     seeded = sorted(o.split("/base/")[1] for o in outputs if "/base/" in o and "_seed" in o)
     assert seeded == [f"{a}_seed{k}/eval.json" for a in ("alpha1", "alpha2") for k in (1, 2)]
     assert plan.subject_values("portraits")["fit_rgb.mode"] == "images"
+    figures = [o for o in plan.pretrain_outputs() if "/controls/" in o]
+    assert figures == [f"results/smoke/pretrain/controls/{f}.json" for f in config["control_figures"]]
+    only_alpha1 = Plan({**config, "alphas": ["alpha1"]})  # figures naming a model this run does not train: left out
+    assert sorted(only_alpha1.control_figures) == []
+    assert sorted(Plan({**config, "betas": ["beta4"]}).control_figures) == ["a4_expression", "fig27_29_fitted",
+                                                                              "fig30_jaw"]
 
 
 def test_optional_subject_without_files_is_skipped_with_a_note(capsys):

@@ -303,6 +303,18 @@ class Apps:
 
 
 @dataclass
+class Controls:
+    models: list[str]
+    subject_dirs: list[str]
+    out: Optional[str]
+    control: str = one_of("fitted", "jaw", "distance", "neck", "expression")
+    jaw_rad: list[float] = MISSING
+    neck_deg: list[float] = MISSING
+    distance_offsets: list[float] = MISSING
+    expression_values: list[float] = MISSING
+
+
+@dataclass
 class Report:
     results_dir: str
     out_dir: str
@@ -313,7 +325,8 @@ class Report:
 SECTIONS = {"paths": Paths, "render": Render, "demo": Demo, "dlib_check": DlibCheck, "subject": Subject,
             "preprocess": Preprocess, "fit_rgb": FitRGB, "fit_rgbd": FitRGBD, "interp": Interp, "tracking": Tracking,
             "model": Model, "synthetic": Synthetic, "pretrain": Pretrain, "finetune": Finetune, "evaluate": Evaluate,
-            "strategy": Strategy, "speech": Speech, "apps": Apps, "report": Report}
+            "strategy": Strategy, "speech": Speech, "apps": Apps, "controls": Controls,
+            "report": Report}
 TOP_LEVEL = {"seed": (int, 0), "threads": (int, 1), "amp": (bool, None), "device": (str, None)}
 
 

@@ -170,3 +170,33 @@ rule renderer_experiment:
 rule pretrain_all:
     input:
         PLAN.pretrain_outputs(),
+
+
+rule control_figure:
+    """Pretrained models on held-out frames with one control swept (figs. 27, 29-32), each synthesis row under the
+    head model's render of the same parameters, scored beside trivial predictors (control_figures in
+    workflow/config.yaml)."""
+    input:
+        models=lambda wc: [f"{RESULTS}/pretrain/{m}/model.pt" for m in PLAN.control_figures[wc.figure]["models"]],
+        fits=[f"{PLAN.subject_dir(s)}/fit_rgb.npz" for s in PLAN.videos],
+        masks=[f"{PLAN.subject_dir(s)}/masks.npz" for s in PLAN.videos],
+    output:
+        report=f"{RESULTS}/pretrain/controls/{{figure}}.json",
+        grid=report(f"{RESULTS}/pretrain/controls/{{figure}}.png", caption="../report/pretrain.rst",
+                    category="Pretraining", subcategory="controls"),
+    log:
+        f"{LOGS}/pretrain/controls_{{figure}}.log",
+    wildcard_constraints:
+        figure="|".join(re.escape(n) for n in PLAN.control_figures) or "no-control-figure",
+    params:
+        **step_params("avatarlab.evaluate.controls", values=lambda wc, input, output: {
+            "controls.models": list(input.models), "controls.subject_dirs": [str(Path(f).parent) for f in input.fits],
+            "controls.control": PLAN.control_figures[wc.figure]["control"], "controls.out": output.grid},
+            run_dir=lambda wc: f"{RESULTS}/pretrain/controls/.hydra/{wc.figure}"),
+    threads: step_threads("light")
+    resources:
+        **step_resources("light"),
+    conda:
+        "../envs/avatarlab.yaml"
+    shell:
+        "python -m avatarlab.evaluate.controls {params.args} threads={threads} > {log} 2>&1"

@@ -270,6 +270,28 @@ def pretraining_table(results: Path) -> Table:
     return table
 
 
+def controls_table(results: Path) -> Table:
+    table = Table("controls", "Pretrained models on held-out frames with one control swept (dissertation figures 27, "
+                  "29-32)", ["figure", "control", "model", "frames", "psnr_head", "mean_colour_psnr_head",
+                             "unswept_psnr_head", "gain", "response_correlation"],
+                  "Held-out frames: the middle fitted frame of each video subject (never in pretraining), rendered "
+                  "by the model and by the head model (with the mouth interior for alpha2 and its continuations) at "
+                  "each value of the control. psnr_head: the model against the head model's renders; baselines: "
+                  "the frame's mean colour inside each mask, and the render of the frame's own parameters as if "
+                  "the control did nothing (unswept). response_correlation: correlation of the model's change "
+                  "along the sweep with the head model's (0: ignores the control). One run per model.")
+    for path in sorted(results.glob("pretrain/controls/*.json")):
+        report = read_json(path)
+        for name, r in report["models"].items():
+            table.add(figure=path.stem, control=report["control"], model=name, frames=len(report["frames"]),
+                      psnr_head=r["model"]["psnr_head"],
+                      mean_colour_psnr_head=r["baselines"]["mean_colour"]["psnr_head"],
+                      unswept_psnr_head=(r["baselines"].get("unswept") or {}).get("psnr_head"), gain=r["gain"]["psnr_head"]["gain"],
+                      response_correlation=r["response_correlation"])
+    table.note += " " + not_beating(table, ("figure", "model"))
+    return table
+
+
 def renderer_table(results: Path) -> Table:
     table = Table("renderer_experiment", "Renderer experiment (proposed vs HeadNeRF's block)",
                   ["renderer", "iterations_to_target", "target_psnr", "final_train_psnr", "eval_psnr_head",
@@ -770,7 +792,8 @@ def build(results: Path, out: Path, final: str, scale: str) -> dict:
     figures_dir.mkdir(parents=True, exist_ok=True)
     avatars = load_avatars(results)
     finals, final_baselines = final_avatar_table(avatars, final)
-    tables = [preprocessing_table(results), pretraining_table(results), renderer_table(results), finals,
+    tables = [preprocessing_table(results), pretraining_table(results), controls_table(results),
+              renderer_table(results), finals,
               final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
               stage2_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), claims_table(results, avatars, final, scale),
@@ -788,6 +811,8 @@ def build(results: Path, out: Path, final: str, scale: str) -> dict:
     for name in ("alpha1", "alpha2", final):
         figures.append(copy_figure(results / "pretrain" / name / "eval_samples.png",
                                    figures_dir / f"pretrained_{name}_held_out.png"))
+    for path in sorted(results.glob("pretrain/controls/*.png")):
+        figures.append(copy_figure(path, figures_dir / f"pretrained_controls_{path.name}"))
     figures += [copy_figure(results / "headmodel" / "render_grid.png", figures_dir / "head_model_sweeps.png"),
                 copy_figure(results / "report" / "renderer_experiment.png", figures_dir / "renderer_experiment.png")]
     figures = [f for f in figures if f is not None]

@@ -90,6 +90,8 @@ class Plan:
         self.final_recipe = config["final_recipe"]
         self.tiers = resolution_tiers(self.final_recipe, scale or {})
         self.initialisations = self.pretrained + [t.name for t in self.tiers]
+        self.control_figures = {name: spec for name, spec in (config.get("control_figures") or {}).items()
+                                if all(m in self.pretrained for m in spec["models"])}
         self.ablation_subjects = [s for s in config.get("ablation_subjects", []) if s in self.subjects]
         self.seeds = int(config.get("seeds", 1))
         self.interp_subjects = [s for s in config.get("interp_subjects", []) if s in self.subjects]
@@ -169,7 +171,8 @@ class Plan:
 
     def pretrain_outputs(self) -> list[str]:
         return ([f"{self.results}/pretrain/{name}/eval.json" for name in self.initialisations]
-                + [f"{self.results}/report/renderer_experiment.json"])
+                + [f"{self.results}/report/renderer_experiment.json"]
+                + [f"{self.results}/pretrain/controls/{name}.json" for name in self.control_figures])
 
     def avatar_outputs(self) -> list[str]:
         """Every subject's final-recipe avatar and its applications; the 14 base fine-tunes of the ablation subjects;
