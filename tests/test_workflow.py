@@ -157,7 +157,7 @@ def test_pretrained_models_under_controlled_sweeps(smoke_run):
     with open(smoke_run / "smoke" / "report" / "tables" / "controls.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == sum(len(spec["models"]) for spec in figures.values())
-    assert all(r["gain"] and r["mean_colour_psnr_head"] for r in rows)
+    assert all(r["gain"] and r["mean_colour_psnr_head"] and float(r["st_lpips"]) >= 0 for r in rows)
 
 
 @pytest.mark.slow

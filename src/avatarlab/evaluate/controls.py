@@ -9,7 +9,7 @@ middle fitted frame of each, with its fitted shape, expression, pose, texture, l
 offsets (a pretrained model has offsets only for its training images).
 
 Each model row is scored against the head model's renders of the same parameters (the head with the mouth interior
-for a model whose synthetic samples had it: alpha2 and its continuations), over the head region, beside two trivial
+for a model whose synthetic samples had it: alpha2 and its continuations), over the head region (and ST-LPIPS over the image), beside two trivial
 predictors on the same renders: `mean_colour` (the held-out frame's mean colour inside its mask, in every rendered
 mask) and, where a control moves, `unswept` (the render of the frame's own fitted parameters, as if the control did
 nothing). Whether a model
@@ -31,6 +31,7 @@ from PIL import Image, ImageDraw
 
 from avatarlab.apps.avatar import Avatar, load_fit, orbit, select, to_uint8
 from avatarlab.entry import entry_point
+from avatarlab.evaluate.metrics import STLPIPS
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json, write_png
@@ -40,7 +41,7 @@ from avatarlab.render.camera import Camera
 from avatarlab.render.head_renderer import HeadRenderer
 
 log = logging.getLogger(__name__)
-READS = ("seed", "head_model", "render", "controls")
+READS = ("seed", "head_model", "render", "evaluate", "controls")
 CONTROLS = ("fitted", "jaw", "distance", "neck", "expression")
 LABEL_WIDTH = 150
 
@@ -162,11 +163,12 @@ def control_figure(cfg, device) -> tuple[np.ndarray, dict]:
             rows.append(label(np.concatenate([original] + list(to_uint8(truth)), 1), head_name,
                               f"{subject} frame {frame}"))
             rows.append(label(np.concatenate([blank] + list(to_uint8(pred)), 1), name, c.control))
+    perceptual = {"st_lpips": STLPIPS(device) if cfg.evaluate.st_lpips else None}
     for name, stats in per_model.items():
         truth, masks = torch.cat(stats["truth"]), torch.cat(stats["masks"])
-        model = image_scores(torch.cat(stats["pred"]), truth, masks, {})
+        model = image_scores(torch.cat(stats["pred"]), truth, masks, perceptual)
         kept = ("mean_colour",) if c.control == "fitted" else ("mean_colour", "unswept")  # fitted: unswept = truth
-        baselines = {b: image_scores(torch.cat(stats[b]), truth, masks, {}) for b in kept}
+        baselines = {b: image_scores(torch.cat(stats[b]), truth, masks, perceptual) for b in kept}
         responses = [r for r in stats["response"] if r is not None]
         report["models"][name] = {
             "model": model, "baselines": baselines, "gain": gains(model, baselines),

@@ -273,7 +273,8 @@ def pretraining_table(results: Path) -> Table:
 def controls_table(results: Path) -> Table:
     table = Table("controls", "Pretrained models on held-out frames with one control swept (dissertation figures 27, "
                   "29-32)", ["figure", "control", "model", "frames", "psnr_head", "mean_colour_psnr_head",
-                             "unswept_psnr_head", "gain", "response_correlation"],
+                             "unswept_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips",
+                             "response_correlation"],
                   "Held-out frames: the middle fitted frame of each video subject (never in pretraining), rendered "
                   "by the model and by the head model (with the mouth interior for alpha2 and its continuations) at "
                   "each value of the control. psnr_head: the model against the head model's renders; baselines: "
@@ -286,7 +287,9 @@ def controls_table(results: Path) -> Table:
             table.add(figure=path.stem, control=report["control"], model=name, frames=len(report["frames"]),
                       psnr_head=r["model"]["psnr_head"],
                       mean_colour_psnr_head=r["baselines"]["mean_colour"]["psnr_head"],
-                      unswept_psnr_head=(r["baselines"].get("unswept") or {}).get("psnr_head"), gain=r["gain"]["psnr_head"]["gain"],
+                      unswept_psnr_head=(r["baselines"].get("unswept") or {}).get("psnr_head"),
+                      gain=r["gain"]["psnr_head"]["gain"], st_lpips=r["model"].get("st_lpips"),
+                      best_baseline_st_lpips=(r["gain"].get("st_lpips") or {}).get("baseline"),
                       response_correlation=r["response_correlation"])
     table.note += " " + not_beating(table, ("figure", "model"))
     return table
