@@ -63,11 +63,23 @@ def local_env(env: dict) -> dict:
 def test_slurm_run_gives_the_same_outputs_as_a_local_run(cluster_env, tmp_path):
     local, cluster = tmp_path / "local", tmp_path / "slurm"
     env = local_env(cluster_env)
-    snakemake(local, env, "--cores", "2", *SUBJECT_TARGETS, "--config", "scale=smoke")
+    # the local run goes on while the SLURM executor waits between its status checks (the suite's time budget)
+    failures = []
+
+    def run_locally():
+        try:
+            snakemake(local, env, "--cores", "1", *SUBJECT_TARGETS, "--config", "scale=smoke")
+        except Exception as err:  # reported below, in the test's thread
+            failures.append(err)
+
+    local_run = threading.Thread(target=run_locally)
+    local_run.start()
     # the executor looks first after --slurm-init-seconds-before-status-checks, then backs off by 10 s per look that
     # finds nothing finished: a smoke step (a Snakemake start inside the job, then the step) is done within 20 s
     out = snakemake(cluster, env, "--profile", str(REPO / "profiles" / "slurm"), "--slurm-status-command", "squeue",
                     "--slurm-init-seconds-before-status-checks", "20", *SUBJECT_TARGETS, "--config", "scale=smoke")
+    local_run.join()
+    assert not failures, failures
     text = out.stdout + out.stderr
     job_ids = [int(j) for j in re.findall(r"submitted with SLURM jobid (\d+)", text)]
     kinds = {"synthesize_subject": "light", "extract_frames": "light", "detect_landmarks": "light",

@@ -1,6 +1,5 @@
 # Wiring of the rules to the workflow package (src/avatarlab/workflow/, unit-tested): the plan of results and each
 # step's settings, code digest and quoted command line. No logic lives here.
-import re
 import sys
 from pathlib import Path
 

@@ -61,6 +61,14 @@ def speech_audio():
     return {"speech.say": config.get("speech_text", "bin blue at f two now")}
 
 
+# (pretrain.smk)
+def control_figure_names():
+    """A wildcard constraint: the figures of control_figures (never empty: an empty alternation would match '')."""
+    import re
+
+    return "|".join(re.escape(n) for n in PLAN.control_figures) or "no-control-figure"
+
+
 # (sweeps.smk)
 def sweep_names(step):
     """A wildcard constraint: the sweeps of one kind of step (never empty: an empty alternation would match '')."""

@@ -187,7 +187,7 @@ rule control_figure:
     log:
         f"{LOGS}/pretrain/controls_{{figure}}.log",
     wildcard_constraints:
-        figure="|".join(re.escape(n) for n in PLAN.control_figures) or "no-control-figure",
+        figure=control_figure_names(),
     params:
         **step_params("avatarlab.evaluate.controls", values=lambda wc, input, output: {
             "controls.models": list(input.models), "controls.subject_dirs": [str(Path(f).parent) for f in input.fits],
