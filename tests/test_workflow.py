@@ -232,6 +232,9 @@ def test_report(smoke_run):
     with open(report / "tables/pretraining.csv") as f:
         table = list(csv.DictReader(f))
     assert {"psnr_head", "mean_colour_psnr_head", "nearest_psnr_head", "gain"} <= set(table[0])
+    with open(report / "tables/renderer_experiment.csv") as f:
+        renderers = list(csv.DictReader(f))
+    assert all(float(r["eval_st_lpips"]) >= 0 and float(r["eval_best_baseline_st_lpips"]) >= 0 for r in renderers)
     with open(report / "tables/table2_comparison.csv") as f:
         rows = list(csv.DictReader(f))
     published = {r["method"]: float(r["psnr"]) for r in rows if r["source"] == "published"}

@@ -298,7 +298,8 @@ def controls_table(results: Path) -> Table:
 def renderer_table(results: Path) -> Table:
     table = Table("renderer_experiment", "Renderer experiment (proposed vs HeadNeRF's block)",
                   ["renderer", "iterations_to_target", "target_psnr", "final_train_psnr", "eval_psnr_head",
-                   "eval_best_baseline_psnr_head", "eval_gain", "seconds", "iteration_ratio", "claim_holds"],
+                   "eval_best_baseline_psnr_head", "eval_gain", "eval_st_lpips", "eval_best_baseline_st_lpips",
+                   "seconds", "iteration_ratio", "claim_holds"],
                   "Claim (dissertation): the proposed renderer needs fewer than half the iterations (ratio > 2) to "
                   "reach the PSNR the baseline renderer ends with.")
     exp = read_json(results / "report" / "renderer_experiment.json")
@@ -309,7 +310,9 @@ def renderer_table(results: Path) -> Table:
                       target_psnr=exp["target_psnr"], final_train_psnr=exp["final_psnr"].get(name),
                       eval_psnr_head=ev["model"]["psnr_head"],
                       eval_best_baseline_psnr_head=ev["gain"]["psnr_head"]["baseline"],
-                      eval_gain=ev["gain"]["psnr_head"]["gain"], seconds=exp["seconds"][name],
+                      eval_gain=ev["gain"]["psnr_head"]["gain"], eval_st_lpips=ev["model"].get("st_lpips"),
+                      eval_best_baseline_st_lpips=(ev["gain"].get("st_lpips") or {}).get("baseline"),
+                      seconds=exp["seconds"][name],
                       iteration_ratio=exp["iteration_ratio"], claim_holds=exp["claim_holds"])
         above = exp.get("target_above_baselines")
         table.note += (f" The target ({exp['target_psnr']:.2f} dB, training batches) is "
