@@ -246,7 +246,7 @@ def preprocessing_table(results: Path) -> Table:
 
 
 PRETRAIN_COLUMNS = ["model", "iterations", "seconds", "samples_per_second", "psnr_head", "mean_colour_psnr_head",
-                    "nearest_psnr_head", "gain", "psnr", "ssim", "st_lpips", "lpips"]
+                    "nearest_psnr_head", "gain", "psnr", "ssim", "st_lpips", "best_baseline_st_lpips", "lpips"]
 
 
 def pretraining_table(results: Path) -> Table:
@@ -265,6 +265,7 @@ def pretraining_table(results: Path) -> Table:
                   mean_colour_psnr_head=ev["baselines"]["mean_colour"]["psnr_head"],
                   nearest_psnr_head=ev["baselines"]["nearest"]["psnr_head"], gain=ev["gain"]["psnr_head"]["gain"],
                   psnr=ev["model"]["psnr"], ssim=ev["model"]["ssim"], st_lpips=ev["model"].get("st_lpips"),
+                  best_baseline_st_lpips=(ev["gain"].get("st_lpips") or {}).get("baseline"),
                   lpips=ev["model"].get("lpips"))
     table.note += " " + not_beating(table, ("model",))
     return table
