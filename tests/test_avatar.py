@@ -10,7 +10,8 @@ from helpers.subjects import tiny_model_overrides
 from avatarlab.data.splits import mouth_open_subset, subject_split
 from avatarlab.entry import InputError
 from avatarlab.evaluate import baselines
-from avatarlab.evaluate.metrics import (
+from avatarlab.evaluate.scoring import gains
+from avatarlab.metrics import (
     LPIPS,
     STLPIPS,
     face_metrics,
@@ -20,7 +21,6 @@ from avatarlab.evaluate.metrics import (
     psnr,
     ssim,
 )
-from avatarlab.evaluate.scoring import gains
 from avatarlab.safe_load import InputFileError
 
 

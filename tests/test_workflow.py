@@ -388,6 +388,7 @@ def check_subject(folder: Path, max_nme: float) -> None:
     assert interp["held_out"] == 5
     for method in ("xvfi", "farneback", "cross_fade"):
         assert interp[method]["psnr"] > 22 and interp[method]["ssim"] > 0.8  # head turns: ~25.6 dB at smoke
+        assert 0 <= interp[method]["st_lpips"] < 0.5  # ST-LPIPS beside PSNR for every method
     with np.load(folder / "interpolated.npz") as inter:
         assert inter["frames"].shape == (5, 128, 128, 3) and list(inter["indices"]) == [1, 3, 5, 7, 9]
 

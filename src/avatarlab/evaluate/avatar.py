@@ -23,9 +23,9 @@ from avatarlab.data.splits import avatar_split, mouth_open_subset
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.evaluate import baselines
-from avatarlab.evaluate.metrics import STLPIPS, face_metrics, lpips_metric, psnr, ssim
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.io import write_json, write_png
+from avatarlab.metrics import STLPIPS, face_metrics, lpips_metric, psnr, ssim
 from avatarlab.model.head_nerf import assemble_codes, load_model_file, render_in_chunks
 from avatarlab.model.losses import composite
 from avatarlab.tracking import log_to_run

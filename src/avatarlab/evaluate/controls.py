@@ -31,10 +31,10 @@ from PIL import Image, ImageDraw
 
 from avatarlab.apps.avatar import Avatar, load_fit, orbit, select, to_uint8
 from avatarlab.entry import entry_point
-from avatarlab.evaluate.metrics import STLPIPS
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json, write_png
+from avatarlab.metrics import STLPIPS
 from avatarlab.model.head_nerf import load_model_file, synthetic_mouth
 from avatarlab.model.losses import composite
 from avatarlab.render.camera import Camera

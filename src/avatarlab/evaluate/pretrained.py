@@ -20,10 +20,10 @@ from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.entry import entry_point
 from avatarlab.evaluate import baselines
-from avatarlab.evaluate.metrics import STLPIPS, lpips_metric
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json, write_png
+from avatarlab.metrics import STLPIPS, lpips_metric
 from avatarlab.model.head_nerf import assemble_codes, load_model_file, render_in_chunks
 from avatarlab.model.losses import composite
 from avatarlab.tracking import log_to_run

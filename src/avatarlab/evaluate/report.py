@@ -225,7 +225,8 @@ def preprocessing_table(results: Path) -> Table:
     table = Table("preprocessing", "Preprocessing per subject",
                   ["subject", "frames", "landmarks_found", "landmark_nme_vs_truth", "mask_iou", "fit_landmark_px",
                    "fit_shape_mm", "fit_expression_mm", "fit_jaw_deg", "rgbd_accuracy_mm", "rgbd_vertex_mm",
-                   "interp_xvfi_psnr", "interp_farneback_psnr", "interp_crossfade_psnr"],
+                   "interp_xvfi_psnr", "interp_farneback_psnr", "interp_crossfade_psnr", "interp_xvfi_st_lpips",
+                   "interp_farneback_st_lpips", "interp_crossfade_st_lpips"],
                   "Errors against ground truth exist only for synthetic subjects; RGBD only where depth exists "
                   "(synthetic). RGBD accuracy = sqrt(Loss3), the dissertation reports 0.2 mm on its stereo data. "
                   "The interpolation columns put the XVFI-style network beside its two baselines (Farneback flow, "
@@ -241,7 +242,9 @@ def preprocessing_table(results: Path) -> Table:
                   rgbd_accuracy_mm=rgbd.get("accuracy_mm"), rgbd_vertex_mm=rgbd.get("vertex_error_mm"),
                   interp_xvfi_psnr=(interp.get("xvfi") or {}).get("psnr"),
                   interp_farneback_psnr=(interp.get("farneback") or {}).get("psnr"),
-                  interp_crossfade_psnr=(interp.get("cross_fade") or {}).get("psnr"))
+                  interp_crossfade_psnr=(interp.get("cross_fade") or {}).get("psnr"),
+                  **{f"interp_{name}_st_lpips": (interp.get(key) or {}).get("st_lpips")
+                     for name, key in (("xvfi", "xvfi"), ("farneback", "farneback"), ("crossfade", "cross_fade"))})
     return table
 
 

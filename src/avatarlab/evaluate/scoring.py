@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from avatarlab.evaluate.metrics import psnr, psnr_in_mask, ssim
+from avatarlab.metrics import psnr, psnr_in_mask, ssim
 
 #: metrics where lower is better
 LOWER_IS_BETTER = {"st_lpips", "lpips", "landmark_nme"}

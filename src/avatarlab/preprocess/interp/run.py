@@ -20,17 +20,20 @@ import torch
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json, write_png
+from avatarlab.metrics import STLPIPS
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.preprocess.interp.training import split_variants, to_tensor
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'amp', 'preprocess', 'interp')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'amp', 'preprocess', 'interp', 'evaluate')  # the config sections this step reads (avatarlab/entry.py)
 
 
-def quality(pred: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
+def quality(pred: torch.Tensor, target: torch.Tensor, st_lpips=None) -> dict[str, float | None]:
+    """PSNR, SSIM and ST-LPIPS (None when `evaluate.st_lpips` is off) of interpolated frames against the real ones."""
     return {"psnr": float(kornia.metrics.psnr(pred, target, 1.0)),
-            "ssim": float(kornia.metrics.ssim(pred, target, 11).mean())}
+            "ssim": float(kornia.metrics.ssim(pred, target, 11).mean()),
+            "st_lpips": st_lpips(pred, target) if st_lpips is not None else None}
 
 
 @entry_point(READS)
@@ -50,9 +53,11 @@ def main(cfg, device) -> None:
     flow = to_tensor(np.stack([interpolate_farneback(frames_np[i - 1], frames_np[i + 1]) for i in held]))
     fade = 0.5 * (frames[held - 1] + frames[held + 1])
     target = frames[held]
+    perceptual = STLPIPS(device) if cfg.evaluate.st_lpips else None
     report = {"frames": len(frames), "kept_b": len(kept), "held_out": len(held), "model": str(cfg.interp.model),
               "seconds_per_frame": seconds / len(held),
-              "xvfi": quality(xvfi, target), "farneback": quality(flow, target), "cross_fade": quality(fade, target),
+              "xvfi": quality(xvfi, target, perceptual), "farneback": quality(flow, target, perceptual),
+              "cross_fade": quality(fade, target, perceptual),
               "variants": {"a": len(frames), "b": len(kept), "c": len(kept) + len(held)}}
     out_u8 = (xvfi.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
     with atomic_path(subject_dir / "interpolated.npz") as tmp:
