@@ -9,12 +9,12 @@ middle fitted frame of each, with its fitted shape, expression, pose, texture, l
 offsets (a pretrained model has offsets only for its training images).
 
 Each model row is scored against the head model's renders of the same parameters (the head with the mouth interior
-for a model whose synthetic samples had it: alpha2 and its continuations), over the head region (and ST-LPIPS over the image), beside two trivial
-predictors on the same renders: `mean_colour` (the held-out frame's mean colour inside its mask, in every rendered
-mask) and, where a control moves, `unswept` (the render of the frame's own fitted parameters, as if the control did
-nothing). Whether a model
-follows the control at all is `response_correlation`: the Pearson correlation, over the head pixels, of the model's
-change from the sweep's first value with the head model's change (0 for anything that ignores the control).
+for a model whose synthetic samples had it: alpha2 and its continuations), over the head region (and ST-LPIPS over
+the image), beside two trivial predictors on the same renders: `mean_colour` (the held-out frame's mean colour inside
+its mask, in every rendered mask) and, where a control moves, `unswept` (the render of the frame's own fitted
+parameters, as if the control did nothing). Whether a model follows the control at all is `response_correlation`: the
+Pearson correlation, over the head pixels, of the model's change from the sweep's first value with the head model's
+change (0 for anything that ignores the control).
 Writes a PNG grid and a JSON beside it.
 `python -m avatarlab.evaluate.controls controls.models=[a/model.pt,b/model.pt] controls.subject_dirs=[...]
 controls.control=jaw controls.out=fig30_jaw.png`
@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from PIL import Image, ImageDraw
 
 from avatarlab.apps.avatar import Avatar, load_fit, orbit, select, to_uint8
+from avatarlab.data.real_images import RealImageSet
 from avatarlab.entry import entry_point
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.headmodel import load_head_model
@@ -80,8 +80,6 @@ def held_out_frames(subject_dirs, image_size: int) -> list[tuple[str, int, dict]
 
 def frame_image(subject_dir: str | Path, frame: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The held-out frame and its head mask at `size` -> (3, S, S), (1, S, S)."""
-    from avatarlab.data.real_images import RealImageSet
-
     real = RealImageSet(subject_dir, size, indices=[frame])
     return real.images[0], real.masks[0]
 
@@ -126,12 +124,10 @@ def control_figure(cfg, device) -> tuple[np.ndarray, dict]:
     if len(sizes) > 1:
         raise ValueError(f"controls.models render at different sizes ({sorted(sizes)}); one figure needs one size")
     size = sizes.pop()
-    background = tuple(cfg.render.background)
-    heads = {}
-    for mouth in sorted(set(mouths.values())):
-        head_cfg = OmegaConf.merge(cfg.head_model, {"mouth_interior": True}) if mouth else cfg.head_model
-        heads[mouth] = HeadRenderer(load_head_model(head_cfg).to(device), background=background,
-                                    backface_shade=float(cfg.render.backface_shade))
+    heads = {mouth: HeadRenderer(load_head_model(cfg.head_model, mouth_interior=mouth).to(device),
+                                 background=tuple(cfg.render.background),
+                                 backface_shade=float(cfg.render.backface_shade))
+             for mouth in sorted(set(mouths.values()))}
     rows, report = [], {"control": c.control, "image_size": size, "frames": [], "models": {}}
     per_model = {name: {"pred": [], "truth": [], "masks": [], "mean_colour": [], "unswept": [], "response": []}
                  for name in loaded}
@@ -144,20 +140,22 @@ def control_figure(cfg, device) -> tuple[np.ndarray, dict]:
         mean = (image * mask).sum((1, 2)) / mask.sum().clamp(min=1)
         original = to_uint8(composite(image[None], mask[None]))[0]
         blank = np.full_like(original, 255)
-        for name, avatar in loaded.items():
-            renderer = heads[mouths[name]]
+        renders = {}  # per head variant: the swept renders (composited), their masks and the unswept render
+        for mouth, renderer in heads.items():
             lighting = swept["lighting"].to(device)
-            truth_out = renderer({k: v.to(device) for k, v in swept.items()}, cameras.to(device), lighting,
-                                 geometry_images=False)
+            out = renderer({k: v.to(device) for k, v in swept.items()}, cameras.to(device), lighting,
+                           geometry_images=False)
             own = renderer({k: v.to(device) for k, v in params.items()}, camera.to(device), lighting[:1],
                            geometry_images=False)
-            masks = truth_out.mask.cpu()
-            truth = composite(truth_out.rgb.cpu(), masks)
+            masks = out.mask.cpu()
+            renders[mouth] = composite(out.rgb.cpu(), masks), masks, own.rgb.cpu()
+        for name, avatar in loaded.items():
+            truth, masks, own = renders[mouths[name]]
             pred = composite(avatar.render(swept, cameras), masks)
             stats = per_model[name]
             stats["pred"].append(pred), stats["truth"].append(truth), stats["masks"].append(masks)
             stats["mean_colour"].append(composite(mean[None, :, None, None].expand_as(truth), masks))
-            stats["unswept"].append(composite(own.rgb.cpu().expand_as(truth), masks))
+            stats["unswept"].append(composite(own.expand_as(truth), masks))
             stats["response"].append(response_correlation(pred, truth, masks))
             head_name = "head model + mouth" if mouths[name] else "head model"
             rows.append(label(np.concatenate([original] + list(to_uint8(truth)), 1), head_name,

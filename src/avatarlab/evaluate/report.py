@@ -240,10 +240,7 @@ def preprocessing_table(results: Path) -> Table:
                   fit_landmark_px=fit.get("landmark_error_px"), fit_shape_mm=truth.get("shape_error_mm"),
                   fit_expression_mm=truth.get("expression_error_mm"), fit_jaw_deg=truth.get("jaw_error_deg"),
                   rgbd_accuracy_mm=rgbd.get("accuracy_mm"), rgbd_vertex_mm=rgbd.get("vertex_error_mm"),
-                  interp_xvfi_psnr=(interp.get("xvfi") or {}).get("psnr"),
-                  interp_farneback_psnr=(interp.get("farneback") or {}).get("psnr"),
-                  interp_crossfade_psnr=(interp.get("cross_fade") or {}).get("psnr"),
-                  **{f"interp_{name}_st_lpips": (interp.get(key) or {}).get("st_lpips")
+                  **{f"interp_{name}_{metric}": (interp.get(key) or {}).get(metric) for metric in ("psnr", "st_lpips")
                      for name, key in (("xvfi", "xvfi"), ("farneback", "farneback"), ("crossfade", "cross_fade"))})
     return table
 
@@ -268,7 +265,7 @@ def pretraining_table(results: Path) -> Table:
                   mean_colour_psnr_head=ev["baselines"]["mean_colour"]["psnr_head"],
                   nearest_psnr_head=ev["baselines"]["nearest"]["psnr_head"], gain=ev["gain"]["psnr_head"]["gain"],
                   psnr=ev["model"]["psnr"], ssim=ev["model"]["ssim"], st_lpips=ev["model"].get("st_lpips"),
-                  best_baseline_st_lpips=(ev["gain"].get("st_lpips") or {}).get("baseline"),
+                  best_baseline_st_lpips=gain_columns(ev, "st_lpips")["baseline"],
                   lpips=ev["model"].get("lpips"))
     table.note += " " + not_beating(table, ("model",))
     return table
@@ -293,7 +290,7 @@ def controls_table(results: Path) -> Table:
                       mean_colour_psnr_head=r["baselines"]["mean_colour"]["psnr_head"],
                       unswept_psnr_head=(r["baselines"].get("unswept") or {}).get("psnr_head"),
                       gain=r["gain"]["psnr_head"]["gain"], st_lpips=r["model"].get("st_lpips"),
-                      best_baseline_st_lpips=(r["gain"].get("st_lpips") or {}).get("baseline"),
+                      best_baseline_st_lpips=gain_columns(r, "st_lpips")["baseline"],
                       response_correlation=r["response_correlation"])
     table.note += " " + not_beating(table, ("figure", "model"))
     return table
@@ -315,7 +312,7 @@ def renderer_table(results: Path) -> Table:
                       eval_psnr_head=ev["model"]["psnr_head"],
                       eval_best_baseline_psnr_head=ev["gain"]["psnr_head"]["baseline"],
                       eval_gain=ev["gain"]["psnr_head"]["gain"], eval_st_lpips=ev["model"].get("st_lpips"),
-                      eval_best_baseline_st_lpips=(ev["gain"].get("st_lpips") or {}).get("baseline"),
+                      eval_best_baseline_st_lpips=gain_columns(ev, "st_lpips")["baseline"],
                       seconds=exp["seconds"][name],
                       iteration_ratio=exp["iteration_ratio"], claim_holds=exp["claim_holds"])
         above = exp.get("target_above_baselines")

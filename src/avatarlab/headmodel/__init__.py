@@ -32,6 +32,10 @@ def load_head_model_data(cfg) -> HeadModelData:
     raise ValueError(f"head_model.kind must be 'procedural' or 'flame2020', got {kind!r}")
 
 
-def load_head_model(cfg) -> HeadModel:
+def load_head_model(cfg, mouth_interior: bool = False) -> HeadModel:
+    """cfg: the `head_model` config group. `mouth_interior`: the variant with the mouth interior whatever cfg says
+    (alpha2's synthetic samples and those of every model continued from it; seed 002, 3.4)."""
+    if mouth_interior:
+        cfg = {**cfg, "mouth_interior": True}
     data = load_head_model_data(cfg)
     return HeadModel(data, n_shape=cfg["n_shape"], n_expression=cfg["n_expression"], n_texture=cfg["n_texture"])

@@ -63,9 +63,8 @@ def finetune_avatar(cfg, device):
     recipe = recipe_of(cfg, int(parent["step"]))
     synthetic, mouth = None, synthetic_mouth(parent)
     if recipe.schedule.p_max > 0:  # the head the parent's synthetic samples ended with (the mouth after alpha2)
-        head = load_head_model(OmegaConf.merge(cfg.head_model, {"mouth_interior": True}) if mouth else cfg.head_model)
-        synthetic = SyntheticGenerator(head, real.params, cfg.synthetic, size, tuple(cfg.render.background), device,
-                                       fixed_identity=True)
+        synthetic = SyntheticGenerator(load_head_model(cfg.head_model, mouth_interior=mouth), real.params,
+                                       cfg.synthetic, size, tuple(cfg.render.background), device, fixed_identity=True)
     source = BatchSource(synthetic=synthetic, real=real, schedule=recipe.schedule, batch_size=recipe.batch,
                          device=device, z_aug=recipe.z_aug, z_aug_range=recipe.z_aug_range)
     settings = step_settings(cfg, tuple(k for k in READS if k != "tracking"))

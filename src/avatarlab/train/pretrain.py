@@ -69,8 +69,8 @@ def pretrain_model(cfg, device):
     mouth = None
 
     def mouth_generator():
-        mouth_head = load_head_model(OmegaConf.merge(cfg.head_model, {"mouth_interior": True}))
-        return SyntheticGenerator(mouth_head, real.params, cfg.synthetic, size, background, device)
+        return SyntheticGenerator(load_head_model(cfg.head_model, mouth_interior=True), real.params, cfg.synthetic,
+                                  size, background, device)
 
     if schedule.mouth_from is not None:
         mouth = mouth_generator()
