@@ -263,3 +263,91 @@ def test_rig_retargeting_weights_follow_seed_001():
     rig = retarget(coef, poses)
     assert rig[0] == pytest.approx([1, 0, 0]) and rig[1] == pytest.approx([0, 0.5, 0])
     assert rig[2] == pytest.approx([0, 0, 0.5]) and rig[3] == pytest.approx([0, 0, 0])  # -: pose 1,1 is zero here
+
+
+def test_augmented_audio_has_the_asked_noise_and_keeps_its_length():
+    from omegaconf import OmegaConf
+
+    from avatarlab.speech.augment import add_noise, augment, reverberate
+
+    rng = np.random.default_rng(0)
+    clean = np.sin(2 * np.pi * 200 * np.arange(25_000) / 25_000).astype(np.float32)
+    noisy = add_noise(clean, 10.0, rng, coloured=True)
+    snr = 10 * np.log10(np.mean(clean.astype(np.float64) ** 2) / np.mean((noisy - clean) ** 2))
+    assert snr == pytest.approx(10.0, abs=0.01)
+    click = np.zeros(5000)
+    click[100] = 1.0
+    wet = reverberate(click, 25_000, 0.1, 0.0, rng)  # direct and reverberant energy equal: 0 dB
+    tail = np.sum(wet[101:] ** 2) / wet[100] ** 2
+    assert np.abs(wet[:100]).max() < 1e-12 and tail == pytest.approx(1.0, rel=1e-6) and np.abs(wet).max() == pytest.approx(1.0)
+    settings = OmegaConf.load(REPO / "conf" / "config.yaml").speech.augment
+    a = augment(clean, 25_000, np.random.default_rng(1), settings)
+    b = augment(clean, 25_000, np.random.default_rng(1), settings)
+    c = augment(clean, 25_000, np.random.default_rng(2), settings)
+    assert a.dtype == np.float32 and len(a) == len(clean) and np.array_equal(a, b) and not np.allclose(a, c)
+    assert np.corrcoef(a, clean)[0, 1] > 0.2  # still the same sound
+    from avatarlab.errors import ConfigError
+    from avatarlab.speech.augment import check_settings
+
+    check_settings(settings)
+    with pytest.raises(ConfigError, match="speech.augment: snr_db out of range"):
+        check_settings(OmegaConf.merge(settings, {"snr_db": [35, 5]}))
+    with pytest.raises(ConfigError, match="missing gain"):
+        check_settings(OmegaConf.masked_copy(settings, [k for k in settings if k != "gain"]))
+
+
+@needs_espeak
+def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_model):
+    """GRID and Obama clips (one without audio: skipped), a model with a phoneme head; every row's still mouth
+    is the clip's mean shape scored on its own frames, the adapted models differ from the synthetic one."""
+    clips = [SHARED_DATA / "grid" / "bbaf2n.mpg", SHARED_DATA / "grid" / "swwp2s.mpg",
+             SHARED_DATA / "obama" / "wa_working_families.mp4", SHARED_DATA / "obama" / "wa_past_few_years.mp4",
+             SHARED_DATA / "obama" / "wa_young_americans.mp4"]
+    if not all(c.is_file() for c in clips):
+        pytest.skip("../shared/data/grid or obama clips are absent")
+    from helpers.config import step_cfg
+
+    from avatarlab.speech import real_eval
+
+    torch.manual_seed(0)
+    model = AudioToVisemes(65, len(NAMES), len(PHONEMES), viseme_basis(head_model), channels=8, hidden=16)
+    path = tmp_path / "lstm_reg" / "model.pt"
+    path.parent.mkdir()
+    torch.save({"model": model.state_dict(), "kind": "lstm", "n_features": 65, "channels": 8, "hidden": 16,
+                "phoneme_head": True}, path)
+    cfg = step_cfg(real_eval, ["scale=smoke", f"speech.real_clips=[{','.join(map(str, clips))}]",
+                               f"speech.real_models=[{path}]", "speech.adapt_epochs=2"])
+    report = real_eval.run(cfg)
+    assert report["skipped"] == [str(clips[-1])]
+    by_name = {c["clip"]: c for c in report["clips"]}
+    assert set(by_name) == {c.stem for c in clips[:4]}
+    assert by_name["wa_working_families"]["video_frames"] == 61  # 29.97 fps -> 25 fps
+    assert by_name["wa_working_families"]["frames_25fps"] == int(np.floor(60 / 29.97 * 25)) + 1
+    assert by_name["swwp2s"]["word_start_error_ms"] < 80 and by_name["bbaf2n"]["word_start_error_ms"] is None
+    assert all(c["faces_found"] == c["video_frames"] for c in report["clips"])
+    speakers = report["models"]["lstm_reg"]["speakers"]
+    assert set(speakers) == {"grid", "obama"}
+    for speaker, rows in speakers.items():
+        assert set(rows) == {"synthetic", "adapted_other_clips", "adapted_other_speakers"}
+        still = {r["still_mouth_percent"] for r in rows.values()}
+        assert len(still) == 1 and 0.5 < still.pop() < 10  # the same baseline for every row, a plausible size
+        for r in rows.values():
+            per = r["per_clip"]
+            assert r["clips"] == 2 and r["wins"] == sum(v["lip_error_percent"] < v["still_mouth_percent"]
+                                                        for v in per.values())
+            gains = [v["still_mouth_percent"] - v["lip_error_percent"] for v in per.values()]
+            assert r["gain_mean_per_clip"] == pytest.approx(np.mean(gains))
+            assert r["beats_still_mouth"] == (r["gain_mean_per_clip"] - r["gain_ci95"] > 0)
+        assert rows["adapted_other_clips"]["lip_error_percent"] != rows["synthetic"]["lip_error_percent"]
+    assert 0 <= speakers["grid"]["synthetic"]["phoneme_accuracy_vs_alignment"] <= 1
+    assert "phoneme_accuracy_vs_alignment" not in speakers["obama"]["synthetic"]  # no sentence to align
+    # the report's speech table: one row per model, speaker and row kind, as trained first, beside the still mouth
+    from avatarlab.evaluate.report import speech_table
+    from avatarlab.io import write_json
+
+    write_json(tmp_path / "results" / "speech" / "real_eval.json", report)
+    real_rows = [r for r in speech_table(tmp_path / "results", "smoke").rows if "real" in str(r.get("data"))]
+    assert len(real_rows) == 6 and "trained on the synthetic corpus" in real_rows[0]["method"]
+    first = speakers["grid"]["synthetic"]
+    assert real_rows[0]["data"] == "2 real grid clips" and real_rows[0]["baseline_iod"] == first["still_mouth_percent"]
+    assert real_rows[0]["gain_iod"] == pytest.approx(first["still_mouth_percent"] - first["lip_error_percent"])

@@ -311,7 +311,7 @@ def test_edits_rerun_exactly_what_depends_on_them(smoke_run, workdir, tmp_path):
     beta5.write_text(beta5.read_text().replace("p_min: 0.2\np_max: 0.2\n", ""))
     speech = jobs_planned(snakemake(workdir, "-n", "hydra_overrides=[speech.lr=0.002]"))
     # the speech steps only (the corpus reads the speech section too), no preprocessing, pretraining or avatar
-    assert set(speech) <= {"speech_corpus", "speech_train", "speak", "speech_grid_eval", "report_tables"}
+    assert set(speech) <= {"speech_corpus", "speech_train", "speak", "speech_real_eval", "report_tables"}
     assert speech["speech_train"] == 3, "an override of speech.lr reruns the speech steps only"
     losses = copy / "src/avatarlab/model/losses.py"
     losses.write_text(losses.read_text().replace("background: float = 0.5", "background: float = 0.45"))
@@ -397,9 +397,13 @@ def check_speech(results: Path, summary: dict) -> None:
     """The speech corpus, the three models with their table rows, and the speaking avatar with its sound track."""
     corpus = json.loads((results / "speech/corpus.json").read_text())
     assert corpus["speakers"] == 4 and corpus["utterances"] == 12 and corpus["splits"]["test"] >= 1
+    assert len(corpus["voices"]) == 4  # one espeak-ng voice per speaker, in turn
     for name in ("lstm_reg", "lstm_noreg", "window"):
         run = json.loads((results / "speech" / name / "metrics.json").read_text())
         assert 0 < run["test"]["lip_error_percent"] < 30 and run["test"]["latency_ms"] >= 130
+        # the audio models train on each utterance and two augmented copies; the phoneme model on labels alone
+        assert run["augmented_copies"] == (0 if name == "window" else 2)
+        assert run["train_utterances"] == corpus["splits"]["train"]
     assert summary["rows"]["speech"] >= 4 + 3 + 1  # + seed 001 retargeted to the rig (+ real GRID clips)
     speak = json.loads((results / "speech/speak_synth_talk.json").read_text())
     assert speak["with_audio"] and abs(speak["frames"] - 25 * speak["audio_seconds"]) <= 1

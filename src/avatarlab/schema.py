@@ -259,7 +259,11 @@ class Speech:
     wav: Optional[str]
     say: Optional[str]
     animate_model: str
-    grid_clips: Any
+    voices: list[str]
+    augment: dict
+    real_clips: list[str]
+    real_models: list[str]
+    real_eval_out: Optional[str]
     name: str
     model: str = one_of("lstm", "window")
     regularize: bool = MISSING
@@ -285,6 +289,9 @@ class Speech:
     hidden: int = at_least(1)
     pca: int = at_least(1)
     window_hidden: int = at_least(1)
+    adapt_epochs: int = at_least(0)
+    adapt_lr: float = at_least(0)
+    adapt_repeats: int = at_least(1)
 
 
 @dataclass

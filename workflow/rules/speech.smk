@@ -70,26 +70,28 @@ rule speak:
         "python -m avatarlab.speech.animate {params.args} threads={threads} > {log} 2>&1"
 
 
-rule speech_grid_eval:
-    """The seed-000 model (trained on the synthetic corpus) tested on real GRID clips, where they exist."""
+rule speech_real_eval:
+    """The seed-000 audio models (trained on the synthetic corpus, then fine-tuned on the real clips with the scored
+    clip or speaker left out) on real GRID and Obama clips, beside a still mouth, where the clips exist."""
     input:
-        speech=f"{RESULTS}/speech/lstm_reg/model.pt",
-        clips=PLAN.grid_clips,
+        models=[f"{RESULTS}/speech/{m}/model.pt" for m in PLAN.speech_audio_models],
+        clips=PLAN.real_speech_clips,
     output:
-        report=f"{RESULTS}/speech/grid_eval.json",
+        report=f"{RESULTS}/speech/real_eval.json",
     log:
-        f"{LOGS}/speech/grid_eval.log",
+        f"{LOGS}/speech/real_eval.log",
     params:
-        **step_params("avatarlab.speech.grid", values=lambda wc, input, output: {
-            "speech.grid_clips": list(input.clips), "speech.animate_model": input.speech, "apps.out": output.report},
-            run_dir=lambda wc: f"{RESULTS}/speech/.hydra/grid_eval"),
+        **step_params("avatarlab.speech.real_eval", values=lambda wc, input, output: {
+            "speech.real_clips": list(input.clips), "speech.real_models": list(input.models),
+            "speech.real_eval_out": output.report},
+            run_dir=lambda wc: f"{RESULTS}/speech/.hydra/real_eval"),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.speech.grid {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.speech.real_eval {params.args} threads={threads} > {log} 2>&1"
 
 
 rule speech_all:

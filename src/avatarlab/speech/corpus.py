@@ -1,7 +1,7 @@
 """The synthetic audio-visual speech corpus (GRID's grammar, espeak-ng voices, the head model's mouth).
 
-Per utterance: a random six-word GRID command, spoken by espeak-ng with the speaker's voice settings; its phoneme
-events give exact timings. At 25 fps each frame gets the viseme of the phoneme sounding then, smoothed over
+Per utterance: a random six-word GRID command, spoken by espeak-ng with the speaker's voice (speaker k gets
+`speech.voices[k mod n]`: accents and male/female variants) and rate and pitch; its phoneme events give exact timings. At 25 fps each frame gets the viseme of the phoneme sounding then, smoothed over
 neighbouring frames (coarticulation) and scaled by the speaker's articulation strength; the head model with the
 speaker's face shape turns these into 68 frontal landmarks, with a little rigid head motion and landmark noise, as a
 tracked video would give. Speakers are split into train / validation / test like GRID (24 / 6 / 4 of 34).
@@ -75,7 +75,7 @@ def build(cfg: DictConfig) -> dict:
     rng = np.random.default_rng(int(cfg.seed))
     head = load_head_model(cfg.head_model)
     expr_table, jaw_table = viseme_parameters(head)
-    tts = Espeak(sp.voice)
+    voices = list(sp.voices) or [str(sp.voice)]
     n_speakers, per_speaker = int(cfg.speech.speakers), int(cfg.speech.utterances)
     split_sizes = np.array(sp.split_fractions) * n_speakers
     n_val, n_test = max(1, int(round(split_sizes[1]))), max(1, int(round(split_sizes[2])))
@@ -87,6 +87,7 @@ def build(cfg: DictConfig) -> dict:
         shape[0, :20] = torch.from_numpy(rng.normal(0, 0.7, 20)).float()
         strength = rng.uniform(0.75, 1.25, len(NAMES)).astype(np.float32)
         wpm, pitch = int(rng.integers(140, 190)), int(rng.integers(25, 75))
+        tts = Espeak(voices[speaker % len(voices)])
         tts.lib.espeak_SetParameter(1, wpm, 0)
         tts.lib.espeak_SetParameter(3, pitch, 0)  # espeakPITCH
         for _ in range(per_speaker):
@@ -100,7 +101,7 @@ def build(cfg: DictConfig) -> dict:
             with torch.no_grad():
                 lms = frontal_landmarks(head, shape, w @ expr_table, w @ jaw_table).numpy()
             lms = rigid_jitter(lms, rng, 4.0, 0.05, 0.004) + rng.normal(0, float(sp.landmark_noise_m), lms.shape)
-            items.append({"speaker": speaker, "split": splits[speaker], "text": text, "audio_start": sum(map(len, audio)),
+            items.append({"speaker": speaker, "voice": voices[speaker % len(voices)], "split": splits[speaker], "text": text, "audio_start": sum(map(len, audio)),
                           "audio_len": len(wav), "frame_start": sum(len(f[0]) for f in frames), "frames": n})
             audio.append(wav)
             frames.append((labels, weights, lms.astype(np.float32)))
@@ -116,13 +117,14 @@ def main(cfg, device) -> None:
     out = Path(cfg.speech.corpus)
     with atomic_path(out) as tmp:
         np.savez_compressed(tmp, **corpus, item_speaker=[i["speaker"] for i in items],
-                            item_split=[i["split"] for i in items], item_text=[i["text"] for i in items],
+                            item_split=[i["split"] for i in items], item_voice=[i["voice"] for i in items], item_text=[i["text"] for i in items],
                             item_audio_start=[i["audio_start"] for i in items],
                             item_audio_len=[i["audio_len"] for i in items],
                             item_frame_start=[i["frame_start"] for i in items], item_frames=[i["frames"] for i in items],
                             phonemes=PHONEMES, visemes=NAMES)
     seconds = len(corpus["audio"]) / corpus["sample_rate"]
     write_json(out.with_suffix(".json"), {"utterances": len(items), "speakers": len({i["speaker"] for i in items}),
+                                          "voices": sorted({i["voice"] for i in items}),
                                           "seconds": seconds, "frames": int(len(corpus["labels"])),
                                           "splits": {s: sum(i["split"] == s for i in items) for s in
                                                      ("train", "val", "test")}})

@@ -22,6 +22,7 @@ from avatarlab.config import CPU, autocast, grad_scaler
 from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
+from avatarlab.speech.augment import augment, check_settings
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.lip_metrics import align_to, baseline_scores, lip_error_percent, motion_only
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
@@ -33,11 +34,13 @@ READS = ('seed', 'amp', 'head_model', 'speech', 'tracking')  # the config sectio
 
 
 
-
-
-
 class Corpus:
-    def __init__(self, path: Path, basis: np.ndarray, spec: FeatureSpec):
+    """The corpus's utterances as model inputs; each training utterance also `copies` times augmented (`augment`:
+    channel, reverberation, noise, gain drawn from `augmentation`, conf `speech.augment`), same labels and
+    landmarks: training audio closer to a real recording's."""
+
+    def __init__(self, path: Path, basis: np.ndarray, spec: FeatureSpec, augmentation=None, copies: int = 0,
+                 seed: int = 0):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no speech corpus (rule speech_corpus)")
         with np.load(path) as z:
@@ -45,13 +48,19 @@ class Corpus:
         self.labels = data["labels"]
         self.landmarks = align_to(data["landmarks"], basis[0])
         self.items = []
+        rng = np.random.default_rng(seed)
+        rate = int(data["sample_rate"])
         for k in range(len(data["item_split"])):
             a0, an = int(data["item_audio_start"][k]), int(data["item_audio_len"][k])
             f0, fn = int(data["item_frame_start"][k]), int(data["item_frames"][k])
-            self.items.append({"split": str(data["item_split"][k]), "speaker": int(data["item_speaker"][k]),
-                               "windows": windows(data["audio"][a0:a0 + an], int(data["sample_rate"]), fn, spec),
-                               "labels": self.labels[f0:f0 + fn], "landmarks": self.landmarks[f0:f0 + fn],
-                               "seconds": an / int(data["sample_rate"])})
+            split, clean = str(data["item_split"][k]), data["audio"][a0:a0 + an]
+            versions = [clean] + [augment(clean, rate, rng, augmentation) for _ in range(copies if split == "train"
+                                                                                       else 0)]
+            for number, audio in enumerate(versions):
+                self.items.append({"split": split, "speaker": int(data["item_speaker"][k]), "augmented": number > 0,
+                                   "windows": windows(audio, rate, fn, spec),
+                                   "labels": self.labels[f0:f0 + fn], "landmarks": self.landmarks[f0:f0 + fn],
+                                   "seconds": an / rate})
 
     def split(self, name: str) -> list[dict]:
         return [i for i in self.items if i["split"] == name]
@@ -260,7 +269,9 @@ def main(cfg, device) -> None:
     head = load_head_model(cfg.head_model)
     basis = viseme_basis(head)
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
-    corpus = Corpus(Path(sp.corpus), basis.numpy(), spec)
+    check_settings(sp.augment)
+    copies = int(sp.augment.copies) if sp.model == "lstm" else 0  # seed 001 reads phoneme labels, not audio
+    corpus = Corpus(Path(sp.corpus), basis.numpy(), spec, sp.augment, copies, int(cfg.seed))
     out_dir = Path(sp.out_dir)
     name = sp.name
     test = corpus.split("test")
@@ -313,7 +324,8 @@ def main(cfg, device) -> None:
         with atomic_path(out_dir / "model.pt") as tmp:
             torch.save(state, tmp)
         report = {"model": name, "train_seconds": seconds, "test": metrics, "history": history,
-                  "test_utterances": len(test), "train_utterances": len(corpus.split("train"))}
+                  "test_utterances": len(test), "train_utterances": sum(not i["augmented"] for i in corpus.split("train")),
+                  "augmented_copies": copies}
         write_json(out_dir / "metrics.json", report)
         if mlf is not None:
             for epoch in history:  # the training curves, one step per epoch

@@ -20,6 +20,17 @@ from pathlib import Path
 
 from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
+
+def speech_model_kind(name: str) -> str | None:
+    """conf/speech_model/<name>.yaml's `model` (lstm: audio in, window: phoneme labels in), through its defaults."""
+    import yaml
+
+    spec = yaml.safe_load((SPEECH_MODEL_DIR / f"{name}.yaml").read_text()) or {}
+    if "model" in spec:
+        return spec["model"]
+    parents = [d for d in spec.get("defaults", []) if isinstance(d, str) and d != "_self_"]
+    return speech_model_kind(parents[0]) if parents else None
+
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
 
 
@@ -99,7 +110,9 @@ class Plan:
                           if t["avatar"] in self.subjects and t["source"] in self.subjects]
         self.speech_models = sorted(p.stem for p in SPEECH_MODEL_DIR.glob("*.yaml"))
         self.speech_subjects = [s for s in config.get("speech_subjects", []) if s in self.subjects]
-        self.grid_clips = sorted(glob.glob(config["grid_clips"])) if config.get("grid_clips") else []
+        self.real_speech_clips = sorted({c for pattern in config.get("real_speech_clips") or []
+                                         for c in glob.glob(pattern)})
+        self.speech_audio_models = [m for m in self.speech_models if speech_model_kind(m) == "lstm"]  # audio in
         self.sweep_files = Path(sweep_dir) if sweep_dir else SWEEP_DIR
         self.sweeps = load_sweeps(self.sweep_files)
         self.requested_sweeps = list(config.get("sweeps") or [])
@@ -195,7 +208,7 @@ class Plan:
 
     def speech_outputs(self) -> list[str]:
         outputs = [f"{self.results}/speech/{m}/metrics.json" for m in self.speech_models]
-        outputs += [f"{self.results}/speech/grid_eval.json"] if self.grid_clips else []
+        outputs += [f"{self.results}/speech/real_eval.json"] if self.real_speech_clips else []
         return outputs + [f"{self.results}/speech/speak_{s}.mp4" for s in self.speech_subjects]
 
     # --- sweeps ----------------------------------------------------------------------------------------------------
