@@ -1,6 +1,7 @@
 """Sweeps: expansion in Hydra's override grammar, checked sweep files, and the sweep table's statistics."""
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -30,6 +31,10 @@ def test_the_shipped_sweeps_load():
     lr = sweeps["finetune_lr"]
     assert lr.step == "finetune" and len(lr.points) == 9 and lr.subject == "synth_talk"
     assert sweeps["beta4_pmax"].parent == "alpha1" and len(sweeps["beta4_pmax"].points) == 6
+    # workflow config sweep_seeds: the seed axis of every sweep that has one, and nothing else
+    fewer = load_sweeps(seeds=2)
+    assert len(fewer["finetune_lr"].points) == 6 and {p.seed for p in fewer["finetune_lr"].points} == {0, 1}
+    assert {p.setting for p in fewer["finetune_lr"].points} == {p.setting for p in lr.points}
 
 
 @pytest.mark.parametrize("text, message", [
@@ -71,3 +76,20 @@ def test_sweep_table_orders_by_the_metrics_direction(tmp_path, metric):
     assert other["differs_from_best"] == "yes" and other["worse_than_best"] > 0
     assert best[f"{metric}_ci95"] > 0
     assert "lower is better" in table.note if metric == "st_lpips" else "higher is better" in table.note
+
+
+def test_sweep_table_reads_only_the_seeds_the_workflow_ran(tmp_path):
+    """workflow config sweep_seeds=2: the table step gets --seeds 2 and reads seeds 0 and 1 only (no seed-2 points)."""
+    from avatarlab.evaluate.sweep_report import main
+
+    spec = tmp_path / "lr.yaml"
+    spec.write_text("step: finetune\nsubject: s\ninit: alpha1\noverrides: {finetune.lr: '1e-4,1e-3', seed: range(3)}\n")
+    folder = tmp_path / "results"
+    for p in load_sweep(spec, seeds=2).points:
+        fake_point(folder, p.name, 26.0 + p.seed, 0.25)
+    assert main(["--sweep", str(spec), "--dir", str(folder), "--seeds", "2"]) == 0
+    with open(folder / "table.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["seeds"] for r in rows] == ["2", "2"] and [float(r["psnr"]) for r in rows] == [26.5, 26.5]
+    with pytest.raises(FileNotFoundError):  # the file's three seeds: seed 2 was never run
+        main(["--sweep", str(spec), "--dir", str(folder)])

@@ -164,11 +164,15 @@ def identity_similarity(pred_rgb: np.ndarray, target_rgb: np.ndarray) -> float |
     return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
 
 
-def face_metrics(preds: np.ndarray, targets: np.ndarray, target_landmarks: np.ndarray | None = None) -> dict:
+def face_metrics(preds: np.ndarray, targets: np.ndarray, target_landmarks: np.ndarray | None = None,
+                 target_cache: dict | None = None, identity: bool = True) -> dict:
     """Over a set of renders (N, H, W, 3) uint8 and their ground-truth frames: dlib's detection rate on the
     renders, the 68-point NME of the render's landmarks against the truth's (target_landmarks (N, 68, 2), NaN where
     unknown; default dlib on the target frames) normalised by the truth's outer-eye distance, and the identity
-    similarity. NME and identity average over the frames where both faces are found; None where there are none."""
+    similarity (unless identity=False). NME and identity average over the frames where both faces are found; None
+    where there are none. `target_cache`: a dict shared by calls on the same targets (several predictors scored on
+    the same frames), which keeps each target's face and descriptor."""
+    cache = {} if target_cache is None else target_cache
     found, nmes, ids = 0, [], []
     for i, (pred, target) in enumerate(zip(preds, targets)):
         face = find_face(pred)
@@ -178,13 +182,19 @@ def face_metrics(preds: np.ndarray, targets: np.ndarray, target_landmarks: np.nd
         truth_face = None
         truth = None if target_landmarks is None else target_landmarks[i]
         if truth is None or not np.isfinite(truth).all():
-            truth_face = find_face(target)
+            if ("face", i) not in cache:
+                cache["face", i] = find_face(target)
+            truth_face = cache["face", i]
             truth = None if truth_face is None else truth_face[1]
         if truth is not None:
             iod = np.linalg.norm(truth[36] - truth[45])
             nmes.append(float(np.linalg.norm(face[1] - truth, axis=1).mean() / max(iod, 1e-6)))
+        if not identity:
+            continue
         a = face_descriptor(pred, face)
-        b = face_descriptor(target, truth_face)
+        if ("descriptor", i) not in cache:
+            cache["descriptor", i] = face_descriptor(target, truth_face)
+        b = cache["descriptor", i]
         if a is not None and b is not None:
             ids.append(float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))))
     n = len(preds)

@@ -136,10 +136,11 @@ rule sweep_table:
     params:
         code=STEPS.code("avatarlab.evaluate.sweep_report"),
         folder=lambda wc: PLAN.sweep_dir(wc.sweep),
+        seeds=lambda wc: "" if config.get("sweep_seeds") is None else f"--seeds {int(config['sweep_seeds'])}",
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.sweep_report --sweep {input.spec:q} --dir {params.folder:q} > {log} 2>&1"
+        "python -m avatarlab.evaluate.sweep_report --sweep {input.spec:q} --dir {params.folder:q} {params.seeds} > {log} 2>&1"
 
 
 for _sweep in PLAN.sweeps:

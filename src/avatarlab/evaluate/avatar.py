@@ -96,12 +96,13 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
         frame_size = SubjectDir(ft.subject_dir).frames_meta()["size"]
         truth = points[test.frame_index] * (size / frame_size)
         truth[~found[test.frame_index]] = np.nan
-        target_u8 = to_uint8(target)
+        target_u8, targets_seen = to_uint8(target), {}  # each truth frame's face and descriptor, found once
         for name, images in predictions.items():
-            faces = face_metrics(to_uint8(images), target_u8, truth)
+            faces = face_metrics(to_uint8(images), target_u8, truth, targets_seen)
             bucket = report["all"]["model"] if name == "model" else report["all"]["baselines"][name]
             bucket.update(faces)
-        report["ground_truth_face_detection_rate"] = face_metrics(target_u8, target_u8, truth)["face_detection_rate"]
+        report["ground_truth_face_detection_rate"] = face_metrics(target_u8, target_u8, truth, targets_seen,
+                                                                  identity=False)["face_detection_rate"]
     for part in ("all", "mouth_open"):
         report[part]["gain"] = gains(report[part]["model"], report[part]["baselines"])
     report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device)

@@ -103,9 +103,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sweep", type=Path, required=True, help="conf/sweep/<name>.yaml")
     parser.add_argument("--dir", type=Path, required=True, help="results/<scale>/sweeps/<name>")
+    parser.add_argument("--seeds", type=int, default=None,
+                        help="seeds 0..n-1 instead of the file's seed axis (workflow config sweep_seeds)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    sweep = load_sweep(args.sweep)
+    sweep = load_sweep(args.sweep, args.seeds)
     table, rows = summarise(sweep, args.dir)
     for suffix, text in ((".md", table.markdown()), (".csv", table.csv())):
         with atomic_path(args.dir / f"table{suffix}") as tmp:

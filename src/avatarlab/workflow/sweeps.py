@@ -93,8 +93,9 @@ def expand(overrides: dict) -> list[Point]:
     return points
 
 
-def load_sweep(path: str | Path) -> Sweep:
-    """A sweep file, checked: one line naming the file and the problem when something is wrong."""
+def load_sweep(path: str | Path, seeds: int | None = None) -> Sweep:
+    """A sweep file, checked: one line naming the file and the problem when something is wrong. `seeds` (workflow
+    config `sweep_seeds`) replaces the seed axis of a sweep that has one by seeds 0..seeds-1."""
     path = Path(path)
     try:
         spec = yaml.safe_load(path.read_text()) or {}
@@ -109,6 +110,8 @@ def load_sweep(path: str | Path) -> Sweep:
     overrides = spec.get("overrides")
     if not isinstance(overrides, dict) or not overrides:
         raise ConfigError(f"{path}: 'overrides' must map config keys to sweep expressions")
+    if seeds is not None and SEED_KEY in overrides:
+        overrides = {**overrides, SEED_KEY: f"range({int(seeds)})"}
     try:
         points = expand({k: v for k, v in overrides.items()})
     except ConfigError as err:
@@ -119,5 +122,5 @@ def load_sweep(path: str | Path) -> Sweep:
                  strategy=spec.get("strategy"), parent=spec.get("parent"), description=spec.get("description", ""))
 
 
-def load_sweeps(folder: str | Path = SWEEP_DIR) -> dict[str, Sweep]:
-    return {p.stem: load_sweep(p) for p in sorted(Path(folder).glob("*.yaml"))}
+def load_sweeps(folder: str | Path = SWEEP_DIR, seeds: int | None = None) -> dict[str, Sweep]:
+    return {p.stem: load_sweep(p, seeds) for p in sorted(Path(folder).glob("*.yaml"))}

@@ -114,7 +114,7 @@ class Plan:
                                          for c in glob.glob(pattern)})
         self.speech_audio_models = [m for m in self.speech_models if speech_model_kind(m) == "lstm"]  # audio in
         self.sweep_files = Path(sweep_dir) if sweep_dir else SWEEP_DIR
-        self.sweeps = load_sweeps(self.sweep_files)
+        self.sweeps = load_sweeps(self.sweep_files, config.get("sweep_seeds"))
         self.requested_sweeps = list(config.get("sweeps") or [])
         unknown = [s for s in self.requested_sweeps if s not in self.sweeps]
         if unknown:
