@@ -17,12 +17,16 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
-# Debian's espeak-ng: the voice of the synthetic speech corpus (speech-driven animation)
+# Debian's espeak-ng and Festival with three voices: the voices of the synthetic speech corpus (speech-driven animation)
+SPEECH_PACKAGES := espeak-ng festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts
 system:
-	@command -v espeak-ng >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
-	  { apt-get install -y -q espeak-ng >/dev/null 2>&1 || \
-	    { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q espeak-ng >/dev/null 2>&1; }; }; } || \
-	  echo "note: Debian espeak-ng is not installed; the speech steps will stop with that message"
+	@{ command -v espeak-ng && command -v festival && [ -d /usr/share/festival/voices/english/kal_diphone ] && \
+	   [ -d /usr/share/festival/voices/english/ked_diphone ] && \
+	   [ -d /usr/share/festival/voices/us/cmu_us_slt_arctic_hts ]; } >/dev/null 2>&1 || \
+	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+	  { apt-get install -y -q $(SPEECH_PACKAGES) >/dev/null 2>&1 || \
+	    { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q $(SPEECH_PACKAGES) >/dev/null 2>&1; }; }; } || \
+	  echo "note: Debian $(SPEECH_PACKAGES) are not all installed; the speech steps will stop naming what is missing"
 
 # Debian's chromium for the dashboard screenshot test (skipped, with the reason, where it cannot be installed)
 browser:

@@ -1,5 +1,6 @@
-"""Speech-driven animation: features, espeak-ng timings, visemes, the models and their loss, alignment, metric."""
+"""Speech-driven animation: features, espeak-ng and Festival timings, visemes, the models and their loss, alignment, metric."""
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,6 +59,62 @@ def test_espeak_gives_phonemes_in_order_with_times():
     starts = [s for _, s, _ in utt.phonemes]
     assert starts == sorted(starts) and utt.phonemes[-1][2] == pytest.approx(len(utt.audio) / utt.rate, abs=0.02)
     assert [w for w, _ in utt.words] == ["bin", "blue", "at", "f", "two", "now"]
+
+
+needs_festival = pytest.mark.skipif(
+    shutil.which("festival") is None or not Path("/usr/share/festival/voices/us/cmu_us_slt_arctic_hts").is_dir(),
+    reason="Debian's festival and festvox voices are not installed (`make test` installs them where it can)")
+
+
+@needs_festival
+@pytest.mark.parametrize("voice", ["festival:kal_diphone", "festival:cmu_us_slt_arctic_hts"])
+def test_festival_gives_espeak_phonemes_with_times_that_match_its_audio(voice):
+    """Festival's segments, mapped to espeak's phonemes: the same word starts as espeak's, ordered times ending with
+    the audio, silence where the segments say pause (the leading pause is far quieter than the speech) and a slower
+    voice with a larger duration stretch, and (diphone voices) a higher voice with a larger pitch factor."""
+    from avatarlab.speech.festival import Festival
+
+    utt, slow = Festival(voice).synthesize_many(["bin blue at f two now", "bin blue at f two now"])[0], \
+        Festival(voice, duration_stretch=1.4).synthesize("bin blue at f two now")
+    names = [p for p, _, _ in utt.phonemes]
+    assert names[:4] == ["_", "b", "I", "n"] and "aU" in names and all(n in PHONEMES for n in names)
+    assert all(s < e for _, s, e in utt.phonemes) and utt.phonemes[-1][2] == pytest.approx(len(utt.audio) / utt.rate,
+                                                                                           abs=0.05)
+    _, _, pause_end = utt.phonemes[0]
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
+    pause, speech = utt.audio[: int(pause_end * utt.rate * 0.8)], utt.audio[int(pause_end * utt.rate):]
+    assert rms(pause) < 0.1 * rms(speech)
+    assert len(slow.audio) / slow.rate > 1.2 * len(utt.audio) / utt.rate
+    assert slow.phonemes[-1][2] == pytest.approx(len(slow.audio) / slow.rate, abs=0.05)
+    if voice.endswith("_diphone"):
+        high = Festival(voice, pitch_factor=1.4).synthesize("bin blue at f two now")
+        assert median_f0(high.audio, high.rate) > 1.25 * median_f0(utt.audio, utt.rate)
+
+
+def median_f0(audio: np.ndarray, rate: int) -> float:
+    """Median pitch (Hz) over the voiced 40 ms frames, by autocorrelation in 60-400 Hz."""
+    n, out = int(0.04 * rate), []
+    for start in range(0, len(audio) - n, n):
+        x = audio[start:start + n].astype(np.float64)
+        if np.sqrt(np.mean(x ** 2)) < 0.02:
+            continue
+        c = np.correlate(x, x, "full")[n - 1:]
+        lo, hi = rate // 400, rate // 60
+        out.append(rate / (lo + np.argmax(c[lo:hi])))
+    return float(np.median(out))
+
+
+def test_festival_errors_are_one_line_and_its_text_cannot_leave_the_string():
+    from avatarlab.speech.festival import Festival, FestivalError, scheme_string
+
+    assert scheme_string('a "quoted" \\ word)\n(system "rm")') == '"a \\"quoted\\" \\\\ word)(system \\"rm\\")"'
+    with pytest.raises(FestivalError) as err:
+        Festival("festival:kal_diphone) (system \"ls\"")
+    assert "letters, digits" in str(err.value) and "\n" not in str(err.value)
+    if shutil.which("festival"):
+        with pytest.raises(FestivalError) as err:
+            Festival("festival:no_such_voice").synthesize("bin blue")
+        assert "no voice 'no_such_voice'" in str(err.value) and "\n" not in str(err.value)
 
 
 def test_visemes_are_distinct_mouth_shapes(head_model):

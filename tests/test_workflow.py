@@ -397,7 +397,7 @@ def check_speech(results: Path, summary: dict) -> None:
     """The speech corpus, the three models with their table rows, and the speaking avatar with its sound track."""
     corpus = json.loads((results / "speech/corpus.json").read_text())
     assert corpus["speakers"] == 4 and corpus["utterances"] == 12 and corpus["splits"]["test"] >= 1
-    assert len(corpus["voices"]) == 4  # one espeak-ng voice per speaker, in turn
+    assert len(corpus["voices"]) == 4 and sum(v.startswith("festival:") for v in corpus["voices"]) == 2  # in turn
     for name in ("lstm_reg", "lstm_noreg", "window"):
         run = json.loads((results / "speech" / name / "metrics.json").read_text())
         assert 0 < run["test"]["lip_error_percent"] < 30 and run["test"]["latency_ms"] >= 130

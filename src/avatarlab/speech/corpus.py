@@ -1,7 +1,10 @@
-"""The synthetic audio-visual speech corpus (GRID's grammar, espeak-ng voices, the head model's mouth).
+"""The synthetic audio-visual speech corpus (GRID's grammar, espeak-ng and Festival voices, the head model's mouth).
 
-Per utterance: a random six-word GRID command, spoken by espeak-ng with the speaker's voice (speaker k gets
-`speech.voices[k mod n]`: accents and male/female variants) and rate and pitch; its phoneme events give exact timings. At 25 fps each frame gets the viseme of the phoneme sounding then, smoothed over
+Per utterance: a random six-word GRID command, spoken with the speaker's voice (speaker k gets
+`speech.voices[k mod n]`: espeak-ng accents with male/female variants, Festival's diphone and HTS voices) at the
+speaker's rate (and pitch, for espeak-ng); the engine's phoneme timings (espeak-ng's phoneme events, Festival's
+segments mapped to espeak's phonemes) are exact. At 25 fps each frame gets the viseme of the phoneme sounding then,
+smoothed over
 neighbouring frames (coarticulation) and scaled by the speaker's articulation strength; the head model with the
 speaker's face shape turns these into 68 frontal landmarks, with a little rigid head motion and landmark noise, as a
 tracked video would give. Speakers are split into train / validation / test like GRID (24 / 6 / 4 of 34).
@@ -22,6 +25,7 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.speech.features import resample
+from avatarlab.speech.festival import Festival, is_festival_voice
 from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import (
     NAMES,
@@ -70,6 +74,19 @@ def rigid_jitter(points: np.ndarray, rng: np.random.Generator, degrees: float, s
     return np.stack([s * (c * x - si * y) + off[:, :1], s * (si * x + c * y) + off[:, 1:]], -1)
 
 
+def speak(voice: str, texts: list[str], wpm: int, pitch: int) -> list:
+    """The sentences spoken by one voice: espeak-ng's (name as `espeak-ng --voices` lists it) at `wpm` words per
+    minute and `pitch` (0-100), or Festival's ('festival:<voice>', one process for all; its speed follows `wpm`,
+    and a diphone voice's F0 `pitch` at 10 per semitone around 50)."""
+    if is_festival_voice(voice):
+        return Festival(voice, duration_stretch=165.0 / wpm,
+                        pitch_factor=2 ** ((pitch - 50) / 120)).synthesize_many(texts)
+    tts = Espeak(voice)
+    tts.lib.espeak_SetParameter(1, wpm, 0)
+    tts.lib.espeak_SetParameter(3, pitch, 0)  # espeakPITCH
+    return [tts.synthesize(text) for text in texts]
+
+
 def build(cfg: DictConfig) -> dict:
     sp = cfg.speech
     rng = np.random.default_rng(int(cfg.seed))
@@ -87,12 +104,9 @@ def build(cfg: DictConfig) -> dict:
         shape[0, :20] = torch.from_numpy(rng.normal(0, 0.7, 20)).float()
         strength = rng.uniform(0.75, 1.25, len(NAMES)).astype(np.float32)
         wpm, pitch = int(rng.integers(140, 190)), int(rng.integers(25, 75))
-        tts = Espeak(voices[speaker % len(voices)])
-        tts.lib.espeak_SetParameter(1, wpm, 0)
-        tts.lib.espeak_SetParameter(3, pitch, 0)  # espeakPITCH
-        for _ in range(per_speaker):
-            text = grid_sentence(rng)
-            utt = tts.synthesize(text)
+        voice = voices[speaker % len(voices)]
+        texts = [grid_sentence(rng) for _ in range(per_speaker)]
+        for text, utt in zip(texts, speak(voice, texts, wpm, pitch)):
             wav = resample(utt.audio, utt.rate, int(sp.sample_rate))
             n = int(np.ceil(len(wav) / sp.sample_rate * FPS))
             labels = frame_labels(utt.phonemes, n)
@@ -101,7 +115,7 @@ def build(cfg: DictConfig) -> dict:
             with torch.no_grad():
                 lms = frontal_landmarks(head, shape, w @ expr_table, w @ jaw_table).numpy()
             lms = rigid_jitter(lms, rng, 4.0, 0.05, 0.004) + rng.normal(0, float(sp.landmark_noise_m), lms.shape)
-            items.append({"speaker": speaker, "voice": voices[speaker % len(voices)], "split": splits[speaker], "text": text, "audio_start": sum(map(len, audio)),
+            items.append({"speaker": speaker, "voice": voice, "split": splits[speaker], "text": text, "audio_start": sum(map(len, audio)),
                           "audio_len": len(wav), "frame_start": sum(len(f[0]) for f in frames), "frames": n})
             audio.append(wav)
             frames.append((labels, weights, lms.astype(np.float32)))
