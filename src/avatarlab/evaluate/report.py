@@ -80,9 +80,9 @@ SUBSTITUTIONS = [
      "iterations, 4 of 8 layers frozen, neck range [80, 60, 80] deg", "4x96 MLP, 16 samples, 16->128 px, batch 4, "
      "2 500 + 400 iterations, 600 fine-tuning iterations, 2 of 4 layers frozen, neck range [30, 40, 20] deg",
      "two CPU cores and two hours; `scale=paper` restores the dissertation's sizes"),
-    ("speech corpus", "recorded GRID speakers", "GRID-grammar sentences spoken by seven espeak-ng voices, augmented "
-     "(channel, reverberation, noise, gain); real GRID and Obama clips as a test set and, the scored clip or speaker "
-     "left out, for fine-tuning; no MBROLA or Festival voices", "no downloads; GRID audio is not redistributable "
+    ("speech corpus", "recorded GRID speakers", "GRID-grammar sentences spoken by seven espeak-ng and three Festival "
+     "voices, augmented (channel, reverberation, noise, gain); real GRID and Obama clips as a test set and, the scored "
+     "clip or speaker left out, for fine-tuning; no MBROLA voices", "no downloads; GRID audio is not redistributable "
      "here; Debian has no MBROLA voices"),
     ("speech targets and metric", "each speaker's landmarks; lip error on them", "seed 000 learns each speaker's "
      "motion placed on Pr(B0) (the utterance's mean shape removed); the lip error is reported raw and on the motion, "
