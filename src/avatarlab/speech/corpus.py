@@ -115,8 +115,8 @@ def build(cfg: DictConfig) -> dict:
             with torch.no_grad():
                 lms = frontal_landmarks(head, shape, w @ expr_table, w @ jaw_table).numpy()
             lms = rigid_jitter(lms, rng, 4.0, 0.05, 0.004) + rng.normal(0, float(sp.landmark_noise_m), lms.shape)
-            items.append({"speaker": speaker, "voice": voice, "split": splits[speaker], "text": text, "audio_start": sum(map(len, audio)),
-                          "audio_len": len(wav), "frame_start": sum(len(f[0]) for f in frames), "frames": n})
+            items.append({"speaker": speaker, "voice": voice, "split": splits[speaker], "text": text,
+                          "audio_start": sum(map(len, audio)), "audio_len": len(wav), "frame_start": sum(len(f[0]) for f in frames), "frames": n})
             audio.append(wav)
             frames.append((labels, weights, lms.astype(np.float32)))
     return {"audio": np.concatenate(audio).astype(np.float32), "labels": np.concatenate([f[0] for f in frames]),
@@ -131,7 +131,8 @@ def main(cfg, device) -> None:
     out = Path(cfg.speech.corpus)
     with atomic_path(out) as tmp:
         np.savez_compressed(tmp, **corpus, item_speaker=[i["speaker"] for i in items],
-                            item_split=[i["split"] for i in items], item_voice=[i["voice"] for i in items], item_text=[i["text"] for i in items],
+                            item_split=[i["split"] for i in items], item_voice=[i["voice"] for i in items],
+                            item_text=[i["text"] for i in items],
                             item_audio_start=[i["audio_start"] for i in items],
                             item_audio_len=[i["audio_len"] for i in items],
                             item_frame_start=[i["frame_start"] for i in items], item_frames=[i["frames"] for i in items],

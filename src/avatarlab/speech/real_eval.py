@@ -35,7 +35,7 @@ from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
-from avatarlab.speech.lip_metrics import align_to, lip_error_percent
+from avatarlab.speech.lip_metrics import align_to, lip_error_percent, motion_only
 from avatarlab.speech.models import AudioToVisemes, load_speech_model
 from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import frame_labels, viseme_basis
@@ -118,8 +118,7 @@ def predict(model: AudioToVisemes, clip: RealClip) -> tuple[np.ndarray, np.ndarr
     """The model's landmarks on the clip moved to the truth's mean shape (motion only), and its phoneme ids."""
     model.eval()
     _, logits, landmarks, _ = model(torch.from_numpy(clip.windows)[None])
-    pred = landmarks[0].numpy()
-    moved = pred - pred.mean(0, keepdims=True) + clip.truth.mean(0, keepdims=True)
+    moved = motion_only([landmarks[0].numpy()], [clip.truth])
     return moved, None if logits is None else logits[0].argmax(-1).numpy()
 
 
@@ -161,13 +160,14 @@ def still_mouth(clip: RealClip) -> np.ndarray:
 def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
     """Lip errors of `preds` over the clips' frames beside the still mouth's, and the per-clip paired gain."""
     truth = np.concatenate([c.truth for c in clips])
+    stills = [still_mouth(c) for c in clips]
     model = [lip_error_percent(p, c.truth) for p, c in zip(preds, clips)]
-    still = [lip_error_percent(still_mouth(c), c.truth) for c in clips]
+    still = [lip_error_percent(s, c.truth) for s, c in zip(stills, clips)]
     gains = np.array(still) - np.array(model)
     half = (float(stats.t.ppf(0.975, len(gains) - 1) * gains.std(ddof=1) / np.sqrt(len(gains)))
             if len(gains) > 1 else None)
     return {"lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
-            "still_mouth_percent": lip_error_percent(np.concatenate([still_mouth(c) for c in clips]), truth),
+            "still_mouth_percent": lip_error_percent(np.concatenate(stills), truth),
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half,
             "wins": int((gains > 0).sum()), "clips": len(clips),
             "beats_still_mouth": bool(half is not None and gains.mean() - half > 0),
@@ -179,20 +179,21 @@ def evaluate_model(model: AudioToVisemes, clips: list[RealClip], sp, seed: int) 
     """The three rows (synthetic, adapted on the other clips, adapted on the other speakers) per speaker."""
     speakers = sorted({c.speaker for c in clips})
     synthetic = {c.name: predict(model, c) for c in clips}
-    other_clips = {c.name: predict(adapt(model, [o for o in clips if o is not c], sp, seed + k), c)[0]
-                   for k, c in enumerate(clips)}
+    adapting = int(sp.adapt_epochs) > 0 and len(clips) > 1
+    other_clips = ({c.name: predict(adapt(model, [o for o in clips if o is not c], sp, seed + k), c)[0]
+                    for k, c in enumerate(clips)} if adapting else {})
     other_speakers = {}
-    for k, speaker in enumerate(speakers):
+    for k, speaker in enumerate(speakers if adapting and len(speakers) > 1 else []):
         tuned = adapt(model, [o for o in clips if o.speaker != speaker], sp, seed + 1000 + k)
         other_speakers.update({c.name: predict(tuned, c)[0] for c in clips if c.speaker == speaker})
     out = {}
     for speaker in speakers:
         mine = [c for c in clips if c.speaker == speaker]
         rows = {"synthetic": compare([synthetic[c.name][0] for c in mine], mine)}
-        if int(sp.adapt_epochs) > 0 and len(clips) > 1:
+        if other_clips:
             rows["adapted_other_clips"] = compare([other_clips[c.name] for c in mine], mine)
-            if len(speakers) > 1:
-                rows["adapted_other_speakers"] = compare([other_speakers[c.name] for c in mine], mine)
+        if other_speakers:
+            rows["adapted_other_speakers"] = compare([other_speakers[c.name] for c in mine], mine)
         labelled = [(synthetic[c.name][1], c.labels) for c in mine if c.labels is not None]
         if labelled and labelled[0][0] is not None:
             rows["synthetic"]["phoneme_accuracy_vs_alignment"] = float(

@@ -324,7 +324,8 @@ def main(cfg, device) -> None:
         with atomic_path(out_dir / "model.pt") as tmp:
             torch.save(state, tmp)
         report = {"model": name, "train_seconds": seconds, "test": metrics, "history": history,
-                  "test_utterances": len(test), "train_utterances": sum(not i["augmented"] for i in corpus.split("train")),
+                  "test_utterances": len(test),
+                  "train_utterances": sum(not i["augmented"] for i in corpus.split("train")),
                   "augmented_copies": copies}
         write_json(out_dir / "metrics.json", report)
         if mlf is not None:

@@ -20,6 +20,8 @@ from pathlib import Path
 
 from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
+SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
+
 
 def speech_model_kind(name: str) -> str | None:
     """conf/speech_model/<name>.yaml's `model` (lstm: audio in, window: phoneme labels in), through its defaults."""
@@ -30,8 +32,6 @@ def speech_model_kind(name: str) -> str | None:
         return spec["model"]
     parents = [d for d in spec.get("defaults", []) if isinstance(d, str) and d != "_self_"]
     return speech_model_kind(parents[0]) if parents else None
-
-SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
 
 
 def resolution_tiers(final_recipe: str, scale: dict) -> list[ResolutionTier]:
