@@ -246,15 +246,35 @@ def short_training(tmp_path, name, *extra):
     return pretrain.pretrain_model(pretrain_cfg(tmp_path, name, *extra), torch.device("cpu"))
 
 
+def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration():
+    from avatarlab.data.schedule import Schedule
+    from avatarlab.train.loop import Recipe, lr_factor
+
+    schedule = Schedule(M=100, N=110, p_min=0.0, p_max=0.0, mouth_from=None)
+    constant = Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3)
+    assert [lr_factor(constant, k) for k in (101, 105, 110)] == [1.0, 1.0, 1.0]
+    cosine = Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3, lr_decay="cosine", lr_final=0.1)
+    factors = [lr_factor(cosine, k) for k in range(101, 111)]
+    assert factors[0] == pytest.approx(1.0) and factors[-1] == pytest.approx(0.1)
+    assert all(a > b for a, b in zip(factors, factors[1:])), "falls at every iteration"
+    assert lr_factor(cosine, 105.5) == pytest.approx(0.55), "half-way: half-way between 1 and lr_final"
+    with pytest.raises(ValueError, match="lr_decay"):
+        lr_factor(Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3, lr_decay="step"), 101)
+
+
 @pytest.mark.slow
-def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch):
+@pytest.mark.parametrize("decay", ["none", "cosine"])
+def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay):
     from avatarlab.train import pretrain
 
-    full_net, full, _ = short_training(tmp_path, "full")
+    settings = [f"pretrain.lr_decay={decay}", "pretrain.lr_final=0.05"]
+    full_net, full, _ = short_training(tmp_path, "full", *settings)
     assert [h["step"] for h in full.history] == list(range(1, 10))
     assert [h["n_synthetic"] for h in full.history][:6] == [2] * 6  # p = 1 up to M
     assert not (tmp_path / "full" / "checkpoint.pt").exists(), "a finished step leaves no checkpoint"
-    cfg = pretrain_cfg(tmp_path, "killed")
+    expected_final = 1.0 if decay == "none" else 0.05
+    assert full.history[0]["lr_factor"] == 1.0 and full.history[-1]["lr_factor"] == pytest.approx(expected_final)
+    cfg = pretrain_cfg(tmp_path, "killed", *settings)
     real_step = torch.optim.Adam.step
     calls = {"n": 0}
 

@@ -194,6 +194,8 @@ class Pretrain:
     lr: float = at_least(0)
     renderer_lr: float = at_least(0)
     offset_lr: float = at_least(0)
+    lr_decay: str = one_of("none", "cosine")
+    lr_final: float = at_least(0)
     z_aug_range: list[float] = MISSING
     checkpoint_every: int = at_least(1)
     log_every: int = at_least(1)
@@ -212,6 +214,8 @@ class Finetune:
     lr: float = at_least(0)
     renderer_lr: float = at_least(0)
     offset_lr: float = at_least(0)
+    lr_decay: str = one_of("none", "cosine")
+    lr_final: float = at_least(0)
     fixed_codes: list[str] = MISSING
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING

@@ -9,6 +9,7 @@ exactly where it stopped (weights, optimiser, offsets, every RNG, the history an
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -49,6 +50,24 @@ class Recipe:
     log_every: int = 25
     amp: bool = False
     snapshots: tuple[int, ...] = ()  # iterations after which the weights are handed to `on_snapshot`
+    lr_decay: str = "none"  # none (constant rates) | cosine (every rate falls along a cosine from `start` to N)
+    lr_final: float = 0.0  # cosine: the rates at N, as a fraction of the initial ones
+
+
+LR_DECAYS = ("none", "cosine")
+
+
+def lr_factor(recipe: Recipe, step: int) -> float:
+    """The learning rates of iteration `step` (1-based) as a fraction of the recipe's: 1 (constant), or a cosine from
+    1 at the first iteration after `start` to `lr_final` at the last. A function of the iteration alone, so a
+    resumed run takes the same steps as an uninterrupted one. (The dissertation names Adam and no schedule.)"""
+    if recipe.lr_decay == "none":
+        return 1.0
+    if recipe.lr_decay != "cosine":
+        raise ValueError(f"lr_decay must be one of {LR_DECAYS}, got {recipe.lr_decay!r}")
+    span = recipe.schedule.N - recipe.start
+    progress = (step - 1 - recipe.start) / max(span - 1, 1)
+    return recipe.lr_final + (1.0 - recipe.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
 
 
 @dataclass
@@ -128,6 +147,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
             "texture": source.real.params["texture"].shape[1], "lighting": 27}
     offsets = offset_table(len(source.real), dims, recipe.fixed_codes, device)
     optim = make_optimizer(net, offsets, recipe, device)
+    base_lrs = [group["lr"] for group in optim.param_groups]  # before a resumed state brings its decayed rates
     scaler = grad_scaler(device, recipe.amp)
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
@@ -148,9 +168,12 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
     try:
         t0 = time.perf_counter()
         while step < recipe.schedule.N:
+            factor = lr_factor(recipe, step + 1)
+            for group, base in zip(optim.param_groups, base_lrs):
+                group["lr"] = base * factor
             entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device)
             step += 1
-            history.append({"step": step, **entry})
+            history.append({"step": step, **entry, "lr_factor": factor})
             if step % max(1, recipe.log_every) == 0:
                 log.info("it %d/%d p=%.2f loss %.4f psnr %.2f", step, recipe.schedule.N, entry["p_synthetic"],
                          entry["loss"], entry["psnr"])
