@@ -131,9 +131,37 @@ def test_backward_warp_shifts_and_interpolator_starts_as_cross_fade():
     flow = torch.zeros(1, 2, 6, 6)
     flow[:, 0] = 1.0  # sample one pixel to the right
     assert backward_warp(img, flow)[0, 0, 2, 2] == pytest.approx(1.0)
+    wide, shift = torch.rand(1, 3, 4, 128), torch.full((1, 2, 4, 128), 0.3)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # as the interpolator trains: positions stay float32
+        low = backward_warp(wide, shift.bfloat16())
+    assert low.dtype == torch.float32
+    assert float((low - backward_warp(wide, shift)).abs().max()) < 2e-3, "no 1/2-pixel rounding of the positions"
     net = XVFILite(width=8, scales=2)
     a, b = torch.rand(2, 3, 16, 16), torch.rand(2, 3, 16, 16)
     np.testing.assert_allclose(net(a, b).detach().numpy(), (0.5 * (a + b)).numpy(), atol=1e-5)
+
+
+def test_the_interpolator_started_from_farneback_flows_is_the_farneback_baseline_until_trained():
+    """flow_init=farneback: untrained, the network is the classical baseline (to the baseline's 8-bit rounding); a
+    moving disc is put half-way, where the cross-fade shows two faint discs."""
+    from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
+
+    yy, xx = np.mgrid[:64, :64]
+
+    def disc(cx):
+        img = np.zeros((64, 64, 3), np.uint8)
+        img[(yy - 32) ** 2 + (xx - cx) ** 2 < 80] = [200, 120, 60]
+        return img
+
+    a, b, middle = disc(26), disc(34), disc(30)
+    ta, tb, tm = (torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255 for x in (a, b, middle))
+    baseline = torch.from_numpy(interpolate_farneback(a, b)).permute(2, 0, 1)[None].float() / 255
+    with torch.no_grad():
+        out = XVFILite(width=8, scales=3, flow_init="farneback")(ta, tb)
+    assert float((out - baseline).abs().max()) < 1 / 255
+    assert float((out - tm).abs().mean()) < 0.2 * float((0.5 * (ta + tb) - tm).abs().mean())
+    with pytest.raises(ValueError, match="flow_init"):
+        XVFILite(width=8, flow_init="raft")
 
 
 def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_sees_held_out_frames(tmp_path):
@@ -153,7 +181,8 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert ((triplets >= 9).all(1) | (triplets < 9).all(1)).all(), "a triplet never mixes two videos"
     assert sorted((t[2] - t[0]) // 2 for t in local.tolist()) == [2] * 7 + [4] * 3  # two motion speeds
     cfg = step_cfg(pretrain, ["scale=smoke", f"interp.subject_dirs=[{a},{b}]", f"interp.out_dir={tmp_path / 'out'}",
-                              "interp.iterations=3", "interp.width=8", "interp.scales=2"])
+                              "interp.iterations=3", "interp.width=8", "interp.scales=2",
+                              "interp.strides=[1,2]"])
     pretrain.train_interpolator(cfg, torch.device("cpu"))
     report = json.loads((tmp_path / "out" / "train.json").read_text())
     assert report["iterations"] == 3 and report["triplets"] == 10 and not (tmp_path / "out" / "checkpoint.pt").exists()

@@ -130,6 +130,7 @@ class FitRGBD:
 class Interp:
     width: int = at_least(1)
     scales: int = at_least(1)
+    flow_init: str = one_of("zero", "farneback")
     lr: float = at_least(0)
     batch: int = at_least(1)
     iterations: int = at_least(0)

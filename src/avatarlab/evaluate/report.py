@@ -66,8 +66,10 @@ SUBSTITUTIONS = [
      "ImageNet weights are a licensed optional input"),
     ("LPIPS", "LPIPS-VGG", "LPIPS-VGG only with its backbone given (else 'missing'); ST-LPIPS (AlexNet, weights in "
      "its wheel) reported under its own name", "never a substitute under LPIPS's name"),
-    ("frame interpolation", "XVFI trained on X4K1000FPS", "an XVFI-style multi-scale flow network trained once on "
-     "every subject's video (several motion speeds, held-out frames excluded)", "no downloaded weights or data"),
+    ("frame interpolation", "XVFI trained on X4K1000FPS, its flows learnt from zero", "an XVFI-style multi-scale "
+     "flow network trained once on every subject's video (held-out frames excluded) that refines OpenCV's Farneback "
+     "flows (interp.flow_init=farneback; zero: XVFI's way)", "no downloaded weights or data; flows learnt from zero "
+     "stay a cross-fade within a CPU budget"),
     ("RGBD captures", "ZED2 depth", "the synthetic subjects' rendered depth with Gaussian noise",
      "no depth camera here"),
     ("RGB fit", "free intrinsics", "a fixed principal point (image centre); the root rotation folded into the camera",

@@ -3,7 +3,13 @@
 What it keeps from XVFI: a flow module shared across scales (applied coarse to fine, each scale refining the upsampled
 flows of the coarser one), bidirectional flows F01/F10, complementary flow reversal to the intermediate time t,
 backward warping, and a synthesis step that blends the two warped frames with a learned occlusion map plus a
-residual refinement. Sizes are small so it trains on one subject's frames on a CPU.
+residual refinement. Sizes are small so it trains on a CPU.
+
+Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
+here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two
+frames, and the shared flow module refines a residual on top of them coarse to fine: with the last layers at zero the
+untrained network is exactly the Farneback baseline, and training on the platform's videos moves it from there - what
+a few hundred CPU iterations can teach is the correction (occlusions, the flow's errors), not motion itself.
 """
 from __future__ import annotations
 
@@ -13,23 +19,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from avatarlab.preprocess.interp.optical_flow import farneback_flows
+from avatarlab.preprocess.interp.warp import backward_warp, flow_reversal
 
-def backward_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """Sample image (B,C,H,W) at x + flow(x); flow (B,2,H,W) in pixels (dx, dy)."""
-    b, _, h, w = image.shape
-    ys, xs = torch.meshgrid(torch.arange(h, device=image.device), torch.arange(w, device=image.device),
-                            indexing="ij")
-    gx = (xs[None] + flow[:, 0]) * 2 / max(w - 1, 1) - 1
-    gy = (ys[None] + flow[:, 1]) * 2 / max(h - 1, 1) - 1
-    return F.grid_sample(image, torch.stack([gx, gy], -1), mode="bilinear", padding_mode="border",
-                         align_corners=True)
-
-
-def flow_reversal(f01: torch.Tensor, f10: torch.Tensor, t: float):
-    """Complementary linear flow reversal: flows from time t back to frames 0 and 1 (as in XVFI / Super SloMo)."""
-    ft0 = -(1 - t) * t * f01 + t * t * f10
-    ft1 = (1 - t) * (1 - t) * f01 - t * (1 - t) * f10
-    return ft0, ft1
+FLOW_INITS = ("zero", "farneback")
 
 
 def _block(cin, cout):
@@ -68,28 +61,43 @@ MODEL_FORMAT = "avatarlab-interpolator-1"
 
 
 class XVFILite(nn.Module):
-    def __init__(self, width: int = 32, scales: int = 3):
+    def __init__(self, width: int = 32, scales: int = 3, flow_init: str = "zero"):
         super().__init__()
-        self.scales, self.width = scales, width
+        if flow_init not in FLOW_INITS:
+            raise ValueError(f"flow_init must be one of {FLOW_INITS}, got {flow_init!r}")
+        self.scales, self.width, self.flow_init = scales, width, flow_init
         self.flow = FlowModule(width)
         self.synthesis = SynthesisModule(width)
-        # start as a cross-fade with zero motion: flow residuals, occlusion logits and refinement at zero
+        # start as the initial flows' warp-and-average (a cross-fade for zero flows): flow residuals, occlusion logits
+        # and refinement at zero
         for last in (self.flow.net[-1], self.synthesis.net[-1]):
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
 
+    def initial_flows(self, i0, i1):
+        """The flows the recursion starts from at full resolution: zero, or Farneback's both ways (no gradient)."""
+        return (None, None) if self.flow_init == "zero" else farneback_flows(i0, i1)
+
     def flows(self, i0, i1):
-        f01 = f10 = None
+        """Bidirectional flows, coarse to fine: at each scale the shared module refines the initial flows (resized
+        to that scale) plus the residual carried up from the coarser scale."""
+        init01, init10 = self.initial_flows(i0, i1)
+        r01 = r10 = f01 = f10 = None
         for s in reversed(range(self.scales)):
             a = F.interpolate(i0, scale_factor=0.5**s, mode="bilinear", align_corners=False) if s else i0
             b = F.interpolate(i1, scale_factor=0.5**s, mode="bilinear", align_corners=False) if s else i1
-            if f01 is None:
-                f01 = torch.zeros(a.shape[0], 2, *a.shape[2:], device=a.device)
-                f10 = torch.zeros_like(f01)
+            if init01 is None:
+                base01 = base10 = torch.zeros(a.shape[0], 2, *a.shape[2:], device=a.device, dtype=a.dtype)
             else:
-                f01 = F.interpolate(f01, size=a.shape[2:], mode="bilinear", align_corners=False) * 2
-                f10 = F.interpolate(f10, size=a.shape[2:], mode="bilinear", align_corners=False) * 2
-            f01, f10 = self.flow(a, b, f01, f10)
+                base01, base10 = ((F.interpolate(f, size=a.shape[2:], mode="bilinear", align_corners=False) * 0.5**s
+                                   if s else f).to(a.dtype) for f in (init01, init10))
+            if r01 is None:
+                r01, r10 = torch.zeros_like(base01), torch.zeros_like(base10)
+            else:
+                r01 = F.interpolate(r01, size=a.shape[2:], mode="bilinear", align_corners=False) * 2
+                r10 = F.interpolate(r10, size=a.shape[2:], mode="bilinear", align_corners=False) * 2
+            f01, f10 = self.flow(a, b, base01 + r01, base10 + r10)
+            r01, r10 = f01 - base01, f10 - base10
         return f01, f10
 
     def forward(self, i0: torch.Tensor, i1: torch.Tensor, t: float = 0.5) -> torch.Tensor:
@@ -104,7 +112,8 @@ def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
     from avatarlab.io import atomic_path
 
     with atomic_path(Path(path)) as tmp:
-        torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "iterations": iterations,
+        torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "flow_init": model.flow_init,
+                    "iterations": iterations,
                     "state": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
 
 
@@ -115,6 +124,6 @@ def load_interpolator(path: str | Path, device: torch.device | str = "cpu") -> X
     content = load_tensors(Path(path), "a frame interpolator (model.pt)")
     if not isinstance(content, dict) or content.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: not an avatarlab frame interpolator (expected format {MODEL_FORMAT})")
-    model = XVFILite(int(content["width"]), int(content["scales"]))
+    model = XVFILite(int(content["width"]), int(content["scales"]), str(content.get("flow_init", "zero")))
     model.load_state_dict(content["state"])
     return model.eval().to(device)

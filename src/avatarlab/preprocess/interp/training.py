@@ -46,7 +46,7 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
     """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`.
     The checkpoint resumes only the same work: settings, code and the data files in `data` (their digests)."""
     torch.manual_seed(int(cfg.seed))
-    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales)).to(device)
+    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales), str(cfg.interp.flow_init)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(cfg.interp.lr))
     amp = bool(cfg.get("amp", False))
     scaler = grad_scaler(device, amp)
