@@ -129,7 +129,7 @@ rule fit_rgbd:
 
 
 rule train_interpolator:
-    """The XVFI-style frame interpolator, trained once on every subject's video (several motion speeds) and then
+    """The XVFI-style frame interpolator, trained once on every subject's video (interp.strides) and then
     used for each subject; the frames the interpolation experiment holds out are never among its training frames."""
     input:
         meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.videos],
