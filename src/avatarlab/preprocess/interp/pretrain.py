@@ -4,7 +4,8 @@ XVFI (Sim et al. 2021; seed 002, section 4.3) is a network trained on a large vi
 footage, not one trained per subject. Here it learns from all subjects' videos at once (the synthetic subjects and
 the real clips, each at the motion speeds `interp.strides` names; the default, stride 1 only, is the closest to the
 held-out frames' own motion): triplets (left, middle, right) of frames `stride` apart among the frames variant (b)
-keeps, for every stride in `interp.strides`, so the frames any subject's experiment holds out are never seen. Writes `model.pt` (weights only) and `train.json` into `interp.out_dir`; a killed run resumes.
+keeps, for every stride in `interp.strides`, so the frames any subject's experiment holds out are never seen.
+Writes `model.pt` (weights only) and `train.json` into `interp.out_dir`; a killed run resumes.
 `python -m avatarlab.preprocess.interp.pretrain 'interp.subject_dirs=[results/tiny/subjects/synth_talk,...]'`
 """
 from __future__ import annotations
