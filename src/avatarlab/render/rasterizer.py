@@ -67,49 +67,63 @@ def _edge(ax, ay, bx, by, px, py):
 
 
 @torch.no_grad()
-def _visible_faces(screen: torch.Tensor, faces: torch.Tensor, image_size: tuple[int, int], near: float):
-    """screen (V, 3) [u, v, z] of one image -> pixel_to_face (H*W,) with -1 where empty."""
+def _visible_faces(screen: torch.Tensor, faces: torch.Tensor, image_size: tuple[int, int],
+                   near: float) -> torch.Tensor:
+    """screen (B, V, 3) [u, v, z] -> pixel_to_face (B, H*W) with -1 where empty.
+
+    Every image of the batch in one pass: the (image, face) pairs are numbered b * F + f, and a pixel's slot in the
+    z-buffer is b * H * W + y * W + x. Each candidate (face, pixel) pair reads its face's corners, area and box from
+    one packed table row (one gather instead of one per quantity), and rejected candidates get the empty key instead
+    of being compacted away, so no boolean indexing is needed."""
     h, w = image_size
-    tri = screen[faces]  # (F, 3, 3)
+    b, v, _ = screen.shape
+    n_faces = faces.shape[0]
+    corner_ids = faces[None] + v * torch.arange(b, device=screen.device)[:, None, None]  # (B, F, 3) into (B * V)
+    tri = screen.reshape(b * v, 3).index_select(0, corner_ids.reshape(-1)).reshape(b * n_faces, 3, 3)
     x, y, z = tri[..., 0], tri[..., 1], tri[..., 2]
-    x0 = torch.ceil(x.min(1).values - 0.5).clamp(min=0).long()
-    x1 = torch.floor(x.max(1).values - 0.5).clamp(max=w - 1).long()
-    y0 = torch.ceil(y.min(1).values - 0.5).clamp(min=0).long()
-    y1 = torch.floor(y.max(1).values - 0.5).clamp(max=h - 1).long()
+    x0 = torch.ceil(x.amin(1) - 0.5).clamp(min=0).long()
+    x1 = torch.floor(x.amax(1) - 0.5).clamp(max=w - 1).long()
+    y0 = torch.ceil(y.amin(1) - 0.5).clamp(min=0).long()
+    y1 = torch.floor(y.amax(1) - 0.5).clamp(max=h - 1).long()
     area = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
-    valid = (z.min(1).values > near) & (x1 >= x0) & (y1 >= y0) & (area.abs() > 1e-9)
-    face_ids = torch.nonzero(valid).squeeze(1)
-    bw = (x1 - x0 + 1)[face_ids]
-    counts = bw * (y1 - y0 + 1)[face_ids]
-    # One int64 key per candidate: the float32 depth bits (monotonic for positive floats) then the face id,
-    # so a single scatter-amin picks the nearest face, ties broken by the lower id, across chunks.
-    best_key = torch.full((h * w,), _NO_FACE, dtype=torch.long, device=screen.device)
+    valid = (z.amin(1) > near) & (x1 >= x0) & (y1 >= y0) & (area.abs() > 1e-9)
+    ids = torch.nonzero(valid).squeeze(1)  # into the B * F (image, face) pairs
+    # per valid face: the corners, the area and its box origin, gathered once per candidate pixel as one table row
+    table = torch.cat([x, y, z, area[:, None]], 1).index_select(0, ids)  # (n, 10) float
+    origin = torch.stack([x0, y0, x1 - x0 + 1, y1 - y0 + 1], 1).index_select(0, ids)  # (n, 4) long
+    bw = origin[:, 2]
+    counts = bw * origin[:, 3]
+    best_key = torch.full((b * h * w,), _NO_FACE, dtype=torch.long, device=screen.device)
     ends = torch.cumsum(counts, 0)
-    start_face = 0
-    while start_face < len(face_ids):
-        base = ends[start_face - 1] if start_face > 0 else 0
-        stop = max(int(torch.searchsorted(ends, base + _PIXELS_PER_CHUNK, right=True)), start_face + 1)
-        sel = slice(start_face, stop)
-        cnt = counts[sel]
-        local_face = torch.repeat_interleave(torch.arange(stop - start_face, device=screen.device), cnt)
-        offsets = torch.arange(int(cnt.sum()), device=screen.device) - torch.repeat_interleave(
-            torch.cumsum(cnt, 0) - cnt, cnt)
-        f = face_ids[sel][local_face]
-        bwf = bw[sel][local_face]
-        px = x0[f] + offsets % bwf
-        py = y0[f] + torch.div(offsets, bwf, rounding_mode="floor")
+    start = 0
+    while start < len(ids):
+        base = ends[start - 1] if start > 0 else 0
+        stop = max(int(torch.searchsorted(ends, base + _PIXELS_PER_CHUNK, right=True)), start + 1)
+        cnt = counts[start:stop]
+        total = int(cnt.sum())
+        rows = torch.repeat_interleave(torch.arange(start, stop, device=screen.device), cnt, output_size=total)
+        first = (torch.cumsum(cnt, 0) - cnt).repeat_interleave(cnt, output_size=total)
+        offsets = torch.arange(total, device=screen.device) - first  # candidate's place in its face's box
+        t = table.index_select(0, rows)
+        o = origin.index_select(0, rows)
+        bwf = o[:, 2]
+        px = o[:, 0] + offsets % bwf
+        py = o[:, 1] + torch.div(offsets, bwf, rounding_mode="floor")
         cx, cy = px.float() + 0.5, py.float() + 0.5
-        xf, yf, zf = x[f], y[f], z[f]
-        a = area[f]
+        xf, yf, zf, a = t[:, 0:3], t[:, 3:6], t[:, 6:9], t[:, 9]
         w0 = _edge(xf[:, 1], yf[:, 1], xf[:, 2], yf[:, 2], cx, cy) / a
         w1 = _edge(xf[:, 2], yf[:, 2], xf[:, 0], yf[:, 0], cx, cy) / a
         w2 = 1.0 - w0 - w1
         depth = 1.0 / (w0 / zf[:, 0] + w1 / zf[:, 1] + w2 / zf[:, 2])
         keep = (w0 >= 0) & (w1 >= 0) & (w2 >= 0) & (depth > near)
-        key = (depth[keep].float().view(torch.int32).long() << _FACE_BITS) | f[keep]
-        best_key.scatter_reduce_(0, (py * w + px)[keep], key, reduce="amin")
-        start_face = stop
-    return torch.where(best_key == _NO_FACE, -1, best_key & ((1 << _FACE_BITS) - 1))
+        gid = ids.index_select(0, rows)
+        key = (depth.float().view(torch.int32).long() << _FACE_BITS) | (gid % n_faces)
+        key = torch.where(keep, key, _NO_FACE)
+        pix = (gid // n_faces) * (h * w) + py * w + px
+        best_key.scatter_reduce_(0, pix, key, reduce="amin")
+        start = stop
+    out = torch.where(best_key == _NO_FACE, -1, best_key & ((1 << _FACE_BITS) - 1))
+    return out.reshape(b, h * w)
 
 
 def rasterize(screen: torch.Tensor, faces: torch.Tensor, image_size: tuple[int, int], near: float = 1e-3,
@@ -117,10 +131,7 @@ def rasterize(screen: torch.Tensor, faces: torch.Tensor, image_size: tuple[int, 
     """screen (B, V, 3): pixel u, pixel v (pixel centres at i + 0.5), camera depth z. faces (F, 3) long."""
     batch = screen.shape[0]
     h, w = image_size
-    pix_faces = []
-    for b in range(batch):
-        pix_faces.append(_visible_faces(screen[b].detach(), faces, image_size, near))
-    pix_to_face = torch.stack(pix_faces)  # (B, H*W)
+    pix_to_face = _visible_faces(screen.detach(), faces, image_size, near)  # (B, H*W)
     b_idx, pix = torch.nonzero(pix_to_face >= 0, as_tuple=True)
     face_idx = pix_to_face[b_idx, pix]
     py, px = torch.div(pix, w, rounding_mode="floor"), pix % w
