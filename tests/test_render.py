@@ -42,6 +42,31 @@ def test_zbuffer_keeps_the_nearest_triangle(order):
     assert (depth[~near_mask & (depth > 0)] == pytest.approx(3.0))
 
 
+def test_a_batch_rasterizes_as_its_images_one_by_one():
+    """The z-buffer pass over a whole batch (one slot per image and pixel) picks the same triangle per pixel as
+    rasterizing each image alone, with overlapping triangles and a tiny chunk bound that splits the candidates."""
+    import avatarlab.render.rasterizer as rasterizer
+
+    g = torch.Generator().manual_seed(0)
+    screen = torch.cat([torch.rand(3, 40, 2, generator=g) * 24 - 2, torch.rand(3, 40, 1, generator=g) + 0.5], -1)
+    faces = torch.randint(0, 40, (30, 3), generator=g)
+    whole = rasterize(screen, faces, (20, 20))
+    chunked = rasterizer._PIXELS_PER_CHUNK
+    try:
+        rasterizer._PIXELS_PER_CHUNK = 50
+        small_chunks = rasterize(screen, faces, (20, 20))
+    finally:
+        rasterizer._PIXELS_PER_CHUNK = chunked
+    for frags in (whole, small_chunks):
+        for b in range(3):
+            alone = rasterize(screen[b:b + 1], faces, (20, 20))
+            mine = frags.batch_idx == b
+            assert mine.sum() == alone.face_idx.numel() > 20
+            torch.testing.assert_close(frags.face_idx[mine], alone.face_idx, rtol=0, atol=0)
+            torch.testing.assert_close(frags.pixel_y[mine] * 20 + frags.pixel_x[mine],
+                                       alone.pixel_y * 20 + alone.pixel_x, rtol=0, atol=0)
+
+
 def test_perspective_correct_depth_on_a_slanted_plane():
     K = intrinsics(40.0, (32, 32))
     cam = Camera(K=K, R=torch.eye(3)[None], t=torch.zeros(1, 3), image_size=(32, 32))
