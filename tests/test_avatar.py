@@ -45,6 +45,25 @@ def test_split_can_hold_out_whole_clips():
         subject_split(np.ones(4, bool), np.zeros(4, int), 1, test_clips=1, source="frames.json")
 
 
+def test_validation_frames_and_clips_are_held_out_of_training_and_testing():
+    fitted = np.ones(20, bool)
+    fitted[12] = False
+    split = subject_split(fitted, np.zeros(20, int), 5, validation_frames=3)
+    assert list(split.test) == list(range(15, 20)) and list(split.validation) == [13, 14]
+    assert list(split.train) == list(range(12)) and list(split.seen) == list(range(12)) + [13, 14]
+    c = subject_split(np.ones(20, bool), np.zeros(20, int), 5, variant="c", interpolated=[1, 13], validation_frames=3)
+    assert 13 not in c.train and 1 in c.train, "an interpolated frame never replaces a validation frame"
+    clips = np.repeat([0, 1, 2, 3], 3)
+    held = subject_split(np.ones(12, bool), clips, test_frames=3, test_clips=1, validation_clips=1,
+                         validation_frames=5)  # (frames apply to the last-frames protocol only)
+    assert list(held.test) == [9, 10, 11] and list(held.validation) == [6, 7, 8] and list(held.train) == list(range(6))
+    assert len(subject_split(np.ones(12, bool), clips, 3, test_clips=1).validation) == 0
+    with pytest.raises(InputError, match="4 clip\\(s\\) cannot hold out 1 clip\\(s\\) for testing and 3 for validation"):
+        subject_split(np.ones(12, bool), clips, 3, test_clips=1, validation_clips=3, source="frames.json")
+    with pytest.raises(InputError, match="frames.json: 12 frames are too few for 5 test frames, 3 validation"):
+        subject_split(np.ones(12, bool), np.zeros(12, int), 5, validation_frames=3, source="frames.json")
+
+
 def test_too_few_frames_for_the_split_stop_with_the_file_named():
     with pytest.raises(InputError, match="subject/frames.json: 2 frames are too few for 3 test frames"):
         subject_split(np.ones(2, bool), np.zeros(2, int), 3, source="subject/frames.json")
@@ -235,6 +254,49 @@ def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_pat
     assert part["gain"]["psnr"]["gain"] == pytest.approx(part["model"]["psnr"] - part["gain"]["psnr"]["baseline"])
     assert [pt["step"] for pt in report["curve"]] == [7, 8, 9, 10] and report["step"] == 10  # 4 snapshots by default
     assert grid.shape[1] == 3 * 64, "rows: truth, model, best baseline"
+
+
+@pytest.mark.slow
+def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp_path, parent_model, monkeypatch):
+    """With validation frames, the snapshot scoring best on them becomes the avatar (model.pt holds its weights and
+    step), the end of training stays on the quality curve, and the baselines may copy the validation frames."""
+    from avatarlab.evaluate import avatar as evaluation
+    from avatarlab.model.head_nerf import load_model_file
+    from avatarlab.train import finetune
+
+    path, _ = parent_model
+    subject = fake_video_subject(tmp_path / "subject", count=10)
+    out = tmp_path / "avatar"
+    common = tiny_model_overrides() + [f"finetune.subject_dir={subject}", "finetune.test_frames=2",
+                                       "finetune.validation_frames=2", f"finetune.out_dir={out}"]
+    scores = iter([30.0, 29.0, 28.0, 27.0])  # the candidates in step order: the first snapshot is the best
+    scored = []
+    monkeypatch.setattr(finetune, "psnr", lambda pred, target: scored.append(pred.shape) or next(scores))
+    net, result, report = finetune.finetune_avatar(
+        step_cfg(finetune, common + [f"finetune.init_model={path}", "finetune.iterations=4"]), torch.device("cpu"))
+    start = result.start
+    assert report["train_indices"] == list(range(6)) and report["validation_indices"] == [6, 7]
+    assert report["test_indices"] == [8, 9] and scored == [torch.Size([2, 3, 64, 64])] * 4
+    assert [c["step"] for c in report["validation_scores"]] == [start + 1, start + 2, start + 3, start + 4]
+    assert report["chosen_step"] == start + 1 and report["iterations"] == 4
+    model, content = load_model_file(out / "model.pt")
+    first, _ = load_model_file(out / "snapshots" / f"step_{start + 1:07d}.pt")
+    end, _ = load_model_file(out / "snapshots" / f"step_{start + 4:07d}.pt")
+    assert content["step"] == start + 1 and content["trained_to"] == start + 4
+    for name, weights in model.state_dict().items():
+        assert torch.equal(weights, first.state_dict()[name])
+    assert any(not torch.equal(w, end.state_dict()[k]) for k, w in model.state_dict().items())
+    cfg = step_cfg(evaluation, common + [f"evaluate.model={out / 'model.pt'}", f"evaluate.out={out / 'eval.json'}"])
+    report, _ = evaluation.evaluate_avatar(cfg, torch.device("cpu"))
+    assert [pt["step"] for pt in report["curve"]] == [start + 1, start + 2, start + 3, start + 4]
+    assert [bool(pt.get("model")) for pt in report["curve"]] == [True, False, False, False]
+    assert report["step"] == start + 1 and report["trained_to"] == start + 4 and report["validation_frames"] == 2
+    last = report["all"]["baselines"]["last_frame"]
+    monkeypatch.setattr(evaluation, "avatar_split", lambda ft: type(finetune.avatar_split(ft))(
+        train=finetune.avatar_split(ft).train, test=finetune.avatar_split(ft).test, protocol="last_frames"))
+    without, _ = evaluation.evaluate_avatar(cfg, torch.device("cpu"))
+    assert without["all"]["baselines"]["last_frame"]["psnr"] != pytest.approx(last["psnr"]), \
+        "the last-frame baseline copies frame 7 (a validation frame), not frame 5"
 
 
 @pytest.mark.slow

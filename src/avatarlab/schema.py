@@ -224,6 +224,8 @@ class Finetune:
     p_max: float = at_least(0)
     test_frames: int = at_least(1)
     test_clips: int = at_least(0)
+    validation_frames: int = at_least(0)
+    validation_clips: int = at_least(0)
     frames_variant: str = one_of("a", "b", "c")
     interpolated: str = MISSING
     checkpoint_every: int = at_least(1)

@@ -4,13 +4,17 @@
 - Held-out clips (`test_clips` > 0, a subject made of several clips): every frame of the last `test_clips` clips is a
   test frame, so the avatar is also scored on a recording it never saw (another session, the head elsewhere in the
   crop).
+- Validation (`validation_frames` / `validation_clips`, not in the dissertation, which fine-tunes a fixed number of
+  iterations): the frames just before the test frames, or the clip(s) just before the test clip(s), are held out of
+  training too. Fine-tuning scores its snapshots on them and keeps the best (train/finetune.py), so the stop is chosen
+  on frames that extrapolate as the test frames do, and the test frames stay unseen.
 - Interpolation experiment (section 4.3): variant b keeps every second training frame (the even ones), c adds back
   the dropped ones re-created by the frame interpolator.
 Too few frames for the asked split stops with a line naming the subject's frames file.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -23,42 +27,59 @@ class Split:
     train: np.ndarray  # frame indices the avatar trains on
     test: np.ndarray  # frame indices it is scored on
     protocol: str  # "last_frames" or "held_out_clips"
+    validation: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # frames held out to choose the stop
+
+    @property
+    def seen(self) -> np.ndarray:
+        """Every frame the avatar's run saw (training and validation): what the trivial baselines may copy."""
+        return np.union1d(self.train, self.validation)
 
 
 def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_clips: int = 0, variant: str = "a",
-                  interpolated=(), source: str = "the subject") -> Split:
-    """fitted (N,) bool, clips (N,) clip index of each frame."""
+                  interpolated=(), source: str = "the subject", validation_frames: int = 0,
+                  validation_clips: int = 0) -> Split:
+    """fitted (N,) bool, clips (N,) clip index of each frame. validation_frames applies to the last-frames
+    protocol, validation_clips to the held-out-clips one."""
     if variant not in ("a", "b", "c"):
         raise InputError(f"finetune.frames_variant={variant!r}: expected a, b or c")
     n = len(fitted)
     idx = np.arange(n)
     if test_clips > 0:
         order = list(dict.fromkeys(clips.tolist()))
-        if len(order) <= test_clips:
-            raise InputError(f"{source}: {len(order)} clip(s) cannot hold out {test_clips} clip(s) for testing "
-                             "and still train on another (finetune.test_clips)")
+        if len(order) <= test_clips + validation_clips:
+            raise InputError(f"{source}: {len(order)} clip(s) cannot hold out {test_clips} clip(s) for testing"
+                             + (f" and {validation_clips} for validation" if validation_clips else "")
+                             + " and still train on another (finetune.test_clips, finetune.validation_clips)")
         in_test = np.isin(clips, order[-test_clips:])
+        in_validation = np.isin(clips, order[len(order) - test_clips - validation_clips:len(order) - test_clips])
         protocol = "held_out_clips"
     else:
-        if n < 2 * test_frames:
-            raise InputError(f"{source}: {n} frames are too few for {test_frames} test frames and at least as many "
-                             f"training frames (finetune.test_frames={test_frames})")
+        if n < 2 * test_frames + validation_frames:
+            raise InputError(f"{source}: {n} frames are too few for {test_frames} test frames"
+                             + (f", {validation_frames} validation frames" if validation_frames else "")
+                             + " and at least as many training frames as test frames (finetune.test_frames="
+                             f"{test_frames}, finetune.validation_frames={validation_frames})")
         in_test = idx >= n - test_frames
+        in_validation = (idx >= n - test_frames - validation_frames) & ~in_test
         protocol = "last_frames"
     test = idx[in_test & fitted]
-    in_train = ~in_test & fitted
+    validation = idx[in_validation & fitted]
+    in_train = ~in_test & ~in_validation & fitted
     if variant in ("b", "c"):
         kept = in_train & (idx % 2 == 0)
         if variant == "c":
             made = np.zeros(n, bool)
             made[np.asarray(list(interpolated), dtype=int)] = True
-            kept |= ~in_test & made
+            kept |= ~in_test & ~in_validation & made
         in_train = kept
     train = idx[in_train]
     if len(test) == 0 or len(train) == 0:
         raise InputError(f"{source}: no fitted frame left for the {'test' if len(test) == 0 else 'training'} split "
                          f"({int(fitted.sum())} of {n} frames fitted)")
-    return Split(train=train, test=test, protocol=protocol)
+    if (validation_clips if test_clips > 0 else validation_frames) > 0 and len(validation) == 0:
+        raise InputError(f"{source}: no fitted frame in the validation split ({int(fitted.sum())} of {n} frames "
+                         "fitted)")
+    return Split(train=train, test=test, protocol=protocol, validation=validation)
 
 
 def mouth_open_subset(jaw: np.ndarray, count: int) -> np.ndarray:
@@ -72,4 +93,6 @@ def avatar_split(ft) -> Split:
     fitted = subject.fit(per_frame=False)["fitted"].astype(bool)
     made = subject.interpolated(ft.interpolated)[0] if ft.frames_variant == "c" else ()
     return subject_split(fitted, subject.frame_clips(), int(ft.test_frames), int(ft.test_clips),
-                         str(ft.frames_variant), made, source=str(subject.frames_json))
+                         str(ft.frames_variant), made, source=str(subject.frames_json),
+                         validation_frames=int(ft.validation_frames),
+                         validation_clips=int(ft.validation_clips))

@@ -1,7 +1,7 @@
 """Scoring an avatar on its test frames against trivial baselines (seed 002, 4.1-4.5; INSTA protocol).
 
 The model renders each test frame from the frame's fitted expression, pose and camera; the baselines predict it
-from the training frames alone: their pixelwise mean, the last training frame, and the training frame nearest in
+from the frames the avatar's run saw alone (its training frames, and its validation frames when it had some): their pixelwise mean, the last training frame, and the training frame nearest in
 fitted expression, jaw, neck and camera. All are composited into the test frame's true mask and scored the same way:
 PSNR, head-region PSNR, SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the
 render is a face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
@@ -52,16 +52,20 @@ def baseline_predictions(train: RealImageSet, test: RealImageSet) -> dict[str, t
 def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealImageSet, target: torch.Tensor,
                   device) -> list[dict]:
     """Test PSNR/SSIM of the weights kept part-way through fine-tuning (snapshots/) and of the final model, against
-    the fine-tuning time at which they were kept: the quality-vs-time curve (seed 002, figures 57-58)."""
+    the fine-tuning time at which they were kept: the quality-vs-time curve (seed 002, figures 57-58), in step
+    order; the avatar's own point says `model: true`."""
     points = []
     for path in sorted((model_path.parent / "snapshots").glob("step_*.pt")):
         net, content = load_model_file(path, device)
+        if int(content["step"]) == int(final["step"]):  # the model chosen on validation frames is that snapshot
+            continue
         pred = composite(render_in_chunks(net, *assemble_codes(test.params, test.params["lighting"]), test.camera()),
                          test.masks)
         points.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": psnr(pred, target),
                        "ssim": ssim(pred, target)})
-    return points + [{"step": int(final["step"]), "seconds": final.get("seconds"), "psnr": final_scores["psnr"],
-                      "ssim": final_scores["ssim"]}]
+    points.append({"step": int(final["step"]), "seconds": final.get("seconds"), "psnr": final_scores["psnr"],
+                   "ssim": final_scores["ssim"], "model": True})  # the avatar (with a validation split: its stop)
+    return sorted(points, key=lambda point: point["step"])
 
 
 def scored(predictions: dict, target, masks, perceptual, sel) -> dict:
@@ -79,7 +83,7 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
     size = int(content["spec"]["feature_size"]) * 8
     variant_c = ft.frames_variant == "c"
     test = RealImageSet(ft.subject_dir, size, split.test)
-    train = RealImageSet(ft.subject_dir, size, split.train, ft.interpolated if variant_c else None)
+    train = RealImageSet(ft.subject_dir, size, split.seen, ft.interpolated if variant_c else None)
     start = time.perf_counter()
     render = render_in_chunks(net, *assemble_codes(test.params, test.params["lighting"]), test.camera())
     seconds_per_frame = (time.perf_counter() - start) / len(test)
@@ -112,6 +116,8 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
     report.update({"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "frames_variant": ft.frames_variant,
                    "split": split.protocol, "test_indices": split.test.tolist(), "train_frames": len(split.train),
                    "image_size": size, "render_seconds_per_frame": seconds_per_frame, "step": int(content["step"]),
+                   "trained_to": int(content.get("trained_to", content["step"])),
+                   "validation_frames": len(split.validation),
                    "run_id": content.get("run_id"),
                    "perceptual": {k: (m.name if m is not None else None) for k, m in perceptual.items()}})
     return report, grid

@@ -5,6 +5,9 @@ or `final` (the final recipe: + z-augmentation and a synthetic share decaying li
 from the head the pretrained model ended with: the mouth interior for alpha2 and the betas from it). Both keep the
 subject's fitted shape and texture fixed (no offsets) and the first CNeRF MLP layers frozen. The test frames
 (data/splits.py) are never trained on; scoring them is the evaluation step's job (evaluate/avatar.py).
+With a validation split (`finetune.validation_frames` / `validation_clips`; not in the dissertation, off unless
+asked for) the snapshots and the end of training are scored on the validation frames and the best becomes the
+avatar: the stop is chosen on held-out frames, never on the test frames.
 Writes `model.pt` and `train.json`.
 `python -m avatarlab.train.finetune finetune=final finetune.subject_dir=... finetune.init_model=.../model.pt`
 """
@@ -25,8 +28,9 @@ from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.entry import entry_point, step_settings
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
-from avatarlab.model.head_nerf import load_model_file, model_file, synthetic_mouth
-from avatarlab.model.losses import perceptual_network
+from avatarlab.metrics import psnr
+from avatarlab.model.head_nerf import assemble_codes, load_model_file, model_file, render_in_chunks, synthetic_mouth
+from avatarlab.model.losses import composite, perceptual_network
 from avatarlab.provenance import code_digest, fingerprint
 from avatarlab.tracking import log_history, start_run
 from avatarlab.train.checkpoint import Checkpoint
@@ -50,6 +54,32 @@ def recipe_of(cfg, start: int) -> Recipe:
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
                   log_every=int(ft.log_every), amp=bool(cfg.amp), snapshots=snapshots, lr_decay=str(ft.lr_decay),
                   lr_final=float(ft.lr_final))
+
+
+@torch.no_grad()
+def choose_stop(net, snapshot_dir: Path, validation: RealImageSet, end_step: int, end_seconds: float,
+                device) -> dict:
+    """Scores every snapshot and the end of training (`net`) on the validation frames (PSNR, eq. 10, of the render
+    composited into the frame's mask, as the evaluation scores test frames) -> {"scores": [{step, seconds, psnr}]
+    in step order, "step", "seconds", "psnr" of the best (the earliest on a tie), "state": its weights (None: the
+    end of training)}."""
+    target = composite(validation.images, validation.masks)
+    codes, camera = assemble_codes(validation.params, validation.params["lighting"]), validation.camera()
+
+    def score(model) -> float:
+        return psnr(composite(render_in_chunks(model, *codes, camera), validation.masks), target)
+
+    candidates = []
+    for path in sorted(snapshot_dir.glob("step_*.pt")):
+        model, content = load_model_file(path, device)
+        if int(content["step"]) < end_step:  # (a resumed run's copy of the end of training is the end itself)
+            candidates.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": score(model),
+                               "path": path})
+    candidates.append({"step": end_step, "seconds": end_seconds, "psnr": score(net.eval()), "path": None})
+    best = max(candidates, key=lambda c: (c["psnr"], -c["step"]))
+    state = load_model_file(best["path"], "cpu")[1]["state"] if best["path"] is not None else None
+    return {"scores": [{k: c[k] for k in ("step", "seconds", "psnr")} for c in candidates],
+            "step": best["step"], "seconds": best["seconds"], "psnr": best["psnr"], "state": state}
 
 
 def finetune_avatar(cfg, device):
@@ -87,7 +117,8 @@ def finetune_avatar(cfg, device):
 
             mlflow.log_params({"init": ft.init_name, "recipe": ft.name, "subject": ft.subject,
                                "frames_variant": ft.frames_variant, "train_frames": len(split.train),
-                               "test_frames": len(split.test), "split": split.protocol, "iterations": ft.iterations,
+                               "test_frames": len(split.test), "validation_frames": len(split.validation),
+                               "split": split.protocol, "iterations": ft.iterations,
                                "lr": recipe.lr, "z_aug": recipe.z_aug, "p_max": recipe.schedule.p_max,
                                "image_size": size})
         config = OmegaConf.to_container(cfg, resolve=True)
@@ -99,12 +130,23 @@ def finetune_avatar(cfg, device):
         result = train(net, source, recipe, perceptual_network(cfg.model.vgg16_weights).to(device), device,
                        checkpoint, int(cfg.seed), resume, extra={"run_id": run_id},
                        on_progress=lambda entries: log_history(run, entries), on_snapshot=snapshot)
+        stop = {"step": result.step, "seconds": result.seconds}
+        if len(split.validation):
+            validation = RealImageSet(ft.subject_dir, size, split.validation)
+            stop = choose_stop(net, out_dir / "snapshots", validation, result.step, result.seconds, device)
+            log.info("validation PSNR on %d held-out frames: %s -> the avatar is step %d", len(validation),
+                     ", ".join(f"{c['step']}: {c['psnr']:.2f}" for c in stop["scores"]), stop["step"])
+            if stop["state"] is not None:  # an earlier snapshot wins: keep the end of training on the curve
+                snapshot(result.step, result.seconds)
+                net.load_state_dict(stop["state"])
         with atomic_path(out_dir / "model.pt") as tmp:
-            torch.save(model_file(net, result.step, config, name=run_name, run_id=run_id, stage="finetune",
-                                  seconds=result.seconds, synthetic_mouth=mouth), tmp)
+            torch.save(model_file(net, stop["step"], config, name=run_name, run_id=run_id, stage="finetune",
+                                  seconds=stop["seconds"], synthetic_mouth=mouth, trained_to=result.step), tmp)
         report = {"subject": ft.subject, "init": ft.init_name, "recipe": ft.name, "frames_variant": ft.frames_variant,
                   "split": split.protocol, "train_frames": len(split.train), "train_indices": split.train.tolist(),
                   "test_indices": split.test.tolist(), "iterations": result.step - recipe.start,
+                  "validation_indices": split.validation.tolist(), "chosen_step": stop["step"],
+                  "validation_scores": stop.get("scores", []),
                   "train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
                   "synthetic_samples": "none" if synthetic is None else ("mouth interior" if mouth else "plain head"),
                   "history": result.history, "run_id": run_id}
@@ -112,7 +154,9 @@ def finetune_avatar(cfg, device):
         if run is not None:
             import mlflow
 
-            mlflow.log_metrics({"train_seconds": result.seconds, "samples_per_second": result.samples_per_second})
+            mlflow.log_metrics({"train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
+                                **({"chosen_step": stop["step"], "validation_psnr": stop["psnr"]} if "psnr" in stop
+                                   else {})})
     checkpoint.remove()
     return net, result, report
 
