@@ -1,8 +1,8 @@
 """Scoring an avatar on its test frames against trivial baselines (seed 002, 4.1-4.5; INSTA protocol).
 
 The model renders each test frame from the frame's fitted expression, pose and camera; the baselines predict it
-from the frames the avatar's run saw alone (its training frames, and its validation frames when it had some): their pixelwise mean, the last training frame, and the training frame nearest in
-fitted expression, jaw, neck and camera. All are composited into the test frame's true mask and scored the same way:
+from the frames the avatar's run saw alone (its training frames, and its validation frames when it had some): their
+pixelwise mean, the last of them, and the one nearest in fitted expression, jaw, neck and camera. All are composited into the test frame's true mask and scored the same way:
 PSNR, head-region PSNR, SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the
 render is a face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
 normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings).
