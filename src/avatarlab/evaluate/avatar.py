@@ -2,8 +2,8 @@
 
 The model renders each test frame from the frame's fitted expression, pose and camera; the baselines predict it
 from the frames the avatar's run saw alone (its training frames, and its validation frames when it had some): their
-pixelwise mean, the last of them, and the one nearest in fitted expression, jaw, neck and camera. All are composited into the test frame's true mask and scored the same way:
-PSNR, head-region PSNR, SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the
+pixelwise mean, the last of them, and the one nearest in fitted expression, jaw, neck and camera. All are composited
+into the test frame's true mask and scored the same way: PSNR, head-region PSNR, SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the
 render is a face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
 normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings).
 Writes `eval.json` and `test_frames.png` (truth, model, best baseline) and logs into the avatar's MLflow run.
@@ -26,7 +26,7 @@ from avatarlab.evaluate import baselines
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.io import write_json, write_png
 from avatarlab.metrics import STLPIPS, face_metrics, lpips_metric, psnr, ssim
-from avatarlab.model.head_nerf import assemble_codes, load_model_file, render_in_chunks
+from avatarlab.model.head_nerf import load_model_file, render_frames
 from avatarlab.model.losses import composite
 from avatarlab.tracking import log_to_run
 
@@ -59,8 +59,7 @@ def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealI
         net, content = load_model_file(path, device)
         if int(content["step"]) == int(final["step"]):  # the model chosen on validation frames is that snapshot
             continue
-        pred = composite(render_in_chunks(net, *assemble_codes(test.params, test.params["lighting"]), test.camera()),
-                         test.masks)
+        pred = composite(render_frames(net, test), test.masks)
         points.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": psnr(pred, target),
                        "ssim": ssim(pred, target)})
     points.append({"step": int(final["step"]), "seconds": final.get("seconds"), "psnr": final_scores["psnr"],
@@ -85,7 +84,7 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
     test = RealImageSet(ft.subject_dir, size, split.test)
     train = RealImageSet(ft.subject_dir, size, split.seen, ft.interpolated if variant_c else None)
     start = time.perf_counter()
-    render = render_in_chunks(net, *assemble_codes(test.params, test.params["lighting"]), test.camera())
+    render = render_frames(net, test)
     seconds_per_frame = (time.perf_counter() - start) / len(test)
     target = composite(test.images, test.masks)
     predictions = {"model": composite(render, test.masks), **baseline_predictions(train, test)}

@@ -90,6 +90,12 @@ def render_in_chunks(net: HeadNeRFModel, geometry: torch.Tensor, appearance: tor
                           stratified=False).float().cpu() for k in range(0, len(geometry), chunk)])
 
 
+def render_frames(net: HeadNeRFModel, frames) -> torch.Tensor:
+    """Deterministic renders of a set of fitted frames (anything with per-frame `params`, the lighting among them,
+    and `camera()`, e.g. a RealImageSet) from their own fits; float32 on the CPU."""
+    return render_in_chunks(net, *assemble_codes(frames.params, frames.params["lighting"]), frames.camera())
+
+
 def model_file(net: HeadNeRFModel, step: int, config: dict, **extra) -> dict:
     """The contents of a model.pt: format tag, network spec, weights, the iteration it stopped at, the resolved
     config, and any plain extras (e.g. the MLflow run id)."""

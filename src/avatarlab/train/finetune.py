@@ -29,7 +29,7 @@ from avatarlab.entry import entry_point, step_settings
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import atomic_path, write_json
 from avatarlab.metrics import psnr
-from avatarlab.model.head_nerf import assemble_codes, load_model_file, model_file, render_in_chunks, synthetic_mouth
+from avatarlab.model.head_nerf import load_model_file, model_file, render_frames, synthetic_mouth
 from avatarlab.model.losses import composite, perceptual_network
 from avatarlab.provenance import code_digest, fingerprint
 from avatarlab.tracking import log_history, start_run
@@ -64,22 +64,20 @@ def choose_stop(net, snapshot_dir: Path, validation: RealImageSet, end_step: int
     in step order, "step", "seconds", "psnr" of the best (the earliest on a tie), "state": its weights (None: the
     end of training)}."""
     target = composite(validation.images, validation.masks)
-    codes, camera = assemble_codes(validation.params, validation.params["lighting"]), validation.camera()
 
     def score(model) -> float:
-        return psnr(composite(render_in_chunks(model, *codes, camera), validation.masks), target)
+        return psnr(composite(render_frames(model, validation), validation.masks), target)
 
     candidates = []
     for path in sorted(snapshot_dir.glob("step_*.pt")):
         model, content = load_model_file(path, device)
         if int(content["step"]) < end_step:  # (a resumed run's copy of the end of training is the end itself)
             candidates.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": score(model),
-                               "path": path})
-    candidates.append({"step": end_step, "seconds": end_seconds, "psnr": score(net.eval()), "path": None})
+                               "state": content["state"]})
+    candidates.append({"step": end_step, "seconds": end_seconds, "psnr": score(net.eval()), "state": None})
     best = max(candidates, key=lambda c: (c["psnr"], -c["step"]))
-    state = load_model_file(best["path"], "cpu")[1]["state"] if best["path"] is not None else None
     return {"scores": [{k: c[k] for k in ("step", "seconds", "psnr")} for c in candidates],
-            "step": best["step"], "seconds": best["seconds"], "psnr": best["psnr"], "state": state}
+            "step": best["step"], "seconds": best["seconds"], "psnr": best["psnr"], "state": best["state"]}
 
 
 def finetune_avatar(cfg, device):
