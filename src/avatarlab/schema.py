@@ -88,6 +88,7 @@ class Preprocess:
     max_frames: Optional[int] = at_least(1)
     crop_margin: float = at_least(0)
     crop_samples: int = at_least(1)
+    crop_per_clip: bool = MISSING
     detector_upsample: int = at_least(0)
     min_face_share: float = at_least(0)
     max_missing_frames: float = at_least(0)

@@ -1,8 +1,9 @@
 """Frames of a subject: a video file (mp4/avi/mpg), several clips, a folder of images, or an INSTA subject folder.
 
-Frames are read with OpenCV, subsampled to a target fps, cropped with ONE square head crop for the whole input
-(from dlib face boxes on sampled frames, so the crop is stable over the video) and resized. Writes
-`frames/NNNNNN.png` and `frames.json` (source of each frame, crop box, fps) atomically.
+Frames are read with OpenCV, subsampled to a target fps, cropped with one square head crop per recording (each
+video clip, each image folder: from dlib face boxes on sampled frames of it, so the crop is stable over the clip while
+every clip's head comes out centred and at the same size; `preprocess.crop_per_clip=false`: one crop for all inputs)
+and resized. Writes `frames/NNNNNN.png` and `frames.json` (source of each frame, the crops, fps) atomically.
 `python -m avatarlab.preprocess.frames 'preprocess.inputs=[clip1.mp4,clip2.mp4]' preprocess.subject_dir=...`
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ from tqdm import tqdm
 
 from avatarlab.entry import InputError, entry_point
 from avatarlab.io import write_json
-from avatarlab.preprocess.crop import crop_and_resize
+from avatarlab.preprocess.crop import crop_and_resize, frame_crops
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
@@ -136,22 +137,45 @@ def stable_head_crop(frames, margin: float, samples: int, upsample: int) -> tupl
 
 
 
-def write_frames(subject_dir: Path, frames, sources, fps, crop, size, kinds, inputs) -> dict:
+def clip_ranges(sources: list[str]) -> list[tuple[int, int]]:
+    """(first, stop) of each run of frames from one source (a clip, an image folder, an image)."""
+    starts = [i for i in range(len(sources)) if i == 0 or sources[i] != sources[i - 1]]
+    return list(zip(starts, starts[1:] + [len(sources)]))
+
+
+def choose_crops(frames, sources, pre, kinds) -> list[dict]:
+    """The crops of the frames: [{source, first, count, cx, cy, side}], one per clip or one for all."""
+    if "insta" in kinds or pre.crop_margin <= 0:
+        h, w = frames[0].shape[:2]
+        return [{"source": "all", "first": 0, "count": len(frames), "cx": w // 2, "cy": h // 2, "side": min(h, w)}]
+    ranges = clip_ranges(sources) if pre.crop_per_clip else [(0, len(frames))]
+    crops = []
+    for first, stop in ranges:
+        cx, cy, side = stable_head_crop(frames[first:stop], float(pre.crop_margin), int(pre.crop_samples),
+                                        int(pre.detector_upsample))
+        crops.append({"source": sources[first] if len(ranges) > 1 else "all", "first": first, "count": stop - first,
+                      "cx": cx, "cy": cy, "side": side})
+    return crops
+
+
+def write_frames(subject_dir: Path, frames, sources, fps, crops, size, kinds, inputs) -> dict:
     out_dir = subject_dir / "frames"
     tmp_dir = subject_dir / ".frames.tmp"
     shutil.rmtree(tmp_dir, ignore_errors=True)
     tmp_dir.mkdir(parents=True)
     names = []
+    per_frame = frame_crops({"crops": crops, "count": len(frames)})
     for i, frame in enumerate(tqdm(frames, desc="frames", unit="frame", disable=None)):
         name = f"{i:06d}.png"
-        cv2.imwrite(str(tmp_dir / name), cv2.cvtColor(crop_and_resize(frame, crop, size), cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(tmp_dir / name), cv2.cvtColor(crop_and_resize(frame, per_frame[i], size), cv2.COLOR_RGB2BGR))
         names.append(name)
     shutil.rmtree(out_dir, ignore_errors=True)
     os.replace(tmp_dir, out_dir)
     h, w = frames[0].shape[:2]
     meta = {"count": len(names), "files": names, "sources": sources, "fps": fps, "size": size,
-            "crop": {"cx": crop[0], "cy": crop[1], "side": crop[2]}, "original_size": [h, w], "kinds": kinds,
-            "inputs": [str(p) for p in inputs]}
+            "crops": crops, "original_size": [h, w], "kinds": kinds, "inputs": [str(p) for p in inputs]}
+    if len(crops) == 1:  # one crop for every frame
+        meta["crop"] = {k: crops[0][k] for k in ("cx", "cy", "side")}
     write_json(subject_dir / "frames.json", meta)
     return meta
 
@@ -162,14 +186,11 @@ def main(cfg, device) -> None:
     pre = cfg.preprocess
     inputs = expand_inputs(OmegaConf.to_container(pre.inputs))
     frames, sources, fps, kinds = load_frames(inputs, pre.fps, pre.max_frames, float(pre.max_missing_frames))
-    if "insta" in kinds or pre.crop_margin <= 0:
-        h, w = frames[0].shape[:2]
-        crop = (w // 2, h // 2, min(h, w))
-    else:
-        crop = stable_head_crop(frames, float(pre.crop_margin), int(pre.crop_samples), int(pre.detector_upsample))
-    meta = write_frames(Path(pre.subject_dir), frames, sources, fps, crop, int(pre.image_size), kinds, inputs)
-    log.info("%d frames (%s) at %.2f fps, crop %s -> %dx%d in %s/frames", meta["count"], ",".join(kinds), fps,
-             crop, pre.image_size, pre.image_size, pre.subject_dir)
+    crops = choose_crops(frames, sources, pre, kinds)
+    meta = write_frames(Path(pre.subject_dir), frames, sources, fps, crops, int(pre.image_size), kinds, inputs)
+    shown = "; ".join(f"{c['source']}: ({c['cx']}, {c['cy']}, {c['side']})" for c in crops)
+    log.info("%d frames (%s) at %.2f fps, %d crop(s) %s -> %dx%d in %s/frames", meta["count"], ",".join(kinds), fps,
+             len(crops), shown, pre.image_size, pre.image_size, pre.subject_dir)
 
 
 if __name__ == "__main__":

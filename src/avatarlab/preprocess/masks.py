@@ -102,11 +102,11 @@ def main(cfg, device) -> None:
               "mean_coverage": float(masks.mean())}
     truth = cfg.preprocess.get("truth")
     if truth and Path(truth).is_file():
-        from avatarlab.preprocess.crop import crop_and_resize
+        from avatarlab.preprocess.crop import crop_and_resize, frame_crops
 
         with np.load(truth) as t:
-            crop = (meta["crop"]["cx"], meta["crop"]["cy"], meta["crop"]["side"])
-            gt = np.stack([crop_and_resize(m * 255, crop, meta["size"]) > 127 for m in t["masks"][: len(masks)]])
+            gt = np.stack([crop_and_resize(m * 255, crop, meta["size"]) > 127
+                           for m, crop in zip(t["masks"][: len(masks)], frame_crops(meta))])
         ious = [iou(m > 0, g) for m, g in zip(masks, gt)]
         report.update({"iou_mean": float(np.mean(ious)), "iou_min": float(np.min(ious))})
     with atomic_path(subject_dir / "masks.npz") as tmp:
