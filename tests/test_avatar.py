@@ -14,11 +14,14 @@ from avatarlab.evaluate.scoring import gains
 from avatarlab.metrics import (
     LPIPS,
     STLPIPS,
+    colour_matched,
     face_metrics,
     identity_similarity,
     load_backbone,
     lpips_metric,
     psnr,
+    psnr_colour_matched,
+    psnr_in_mask,
     ssim,
 )
 from avatarlab.safe_load import InputFileError
@@ -84,6 +87,20 @@ def test_psnr_ssim_values():
     pred[1] -= 0.01
     assert psnr(pred, b) == pytest.approx((20.0 + 40.0) / 2, abs=1e-3)
     assert ssim(a, a) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_colour_matched_psnr_forgives_an_overall_colour_and_nothing_else():
+    torch.manual_seed(0)
+    target = torch.rand(2, 3, 16, 16) * 0.6 + 0.2
+    mask = torch.zeros(2, 1, 16, 16)
+    mask[..., 4:12, 4:12] = 1
+    tinted = (target + torch.tensor([0.1, -0.05, 0.02]).view(1, 3, 1, 1)) * mask + target * (1 - mask)
+    assert psnr_in_mask(tinted, target, mask) < 25 and psnr_colour_matched(tinted, target, mask) > 100
+    noisy = target + 0.05 * torch.randn_like(target)  # zero-mean error: matching the colour changes little
+    assert psnr_colour_matched(noisy, target, mask) == pytest.approx(psnr_in_mask(noisy, target, mask), abs=0.3)
+    flat = colour_matched(torch.zeros_like(target), target, mask)  # a flat image takes each image's mean colour
+    np.testing.assert_allclose(flat[:, :, 4:12, 4:12].mean((2, 3)), target[:, :, 4:12, 4:12].mean((2, 3)), atol=1e-6)
+    assert (flat[:, :, :4] == 0).all()
 
 
 def test_lpips_is_missing_without_backbone_and_matches_the_package_with_it(tmp_path):

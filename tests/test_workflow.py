@@ -176,6 +176,9 @@ def test_avatar_stage(smoke_run):
         assert final["recipe"] == "final" and final["ground_truth_face_detection_rate"] >= 0.66
         model = final["all"]["model"]
         assert {"face_detection_rate", "landmark_nme", "identity_similarity", "st_lpips"} <= set(model)
+        # matching each frame's mean colour can only lower the head-region error of a prediction
+        assert model["psnr_head_colour"] >= model["psnr_head"] - 1e-6
+        assert final["all"]["gain"]["psnr_head_colour"]["best_baseline"] in final["all"]["baselines"]
         assert model["lpips"] is None, "no VGG backbone: LPIPS stays missing, never invented"
         # 3 iterations at smoke: snapshots after 1 and 2, then the model
         assert [p["step"] for p in final["curve"]] == [10, 11, 12]
@@ -245,6 +248,7 @@ def test_report(smoke_run):
     with open(report / "tables/final_avatars.csv") as f:
         finals = list(csv.DictReader(f))
     assert {r["seeds"] for r in finals} == {"2"} and all(float(r["psnr_ci95"]) > 0 for r in finals)
+    assert all(r["colour_matched_gain"] != "" for r in finals)  # the colour-matched diagnostic, for every avatar
     text = (report / "README.md").read_text()
     assert "missing" in text and ("do NOT beat their best trivial baseline" in text or "beats its best" in text)
     assert "seed-to-seed noise" in text

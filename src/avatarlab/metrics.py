@@ -47,6 +47,20 @@ def psnr_in_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -
     return float(-10 * torch.log10(mse.clamp(min=1e-12)))
 
 
+def colour_matched(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """`pred` with each image's mean colour inside the mask moved to the target's (per channel, outside unchanged):
+    what is left of the error once a recording's overall colour (white balance, exposure) is given."""
+    weight = mask.float()
+    count = weight.sum((2, 3), keepdim=True).clamp(min=1)
+    shift = ((target - pred) * weight).sum((2, 3), keepdim=True) / count
+    return (pred + shift * weight).clamp(0, 1)
+
+
+def psnr_colour_matched(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
+    """Head-region PSNR after `colour_matched`: the structure of a prediction, whatever its overall colour."""
+    return psnr_in_mask(colour_matched(pred, target, mask), target, mask)
+
+
 class STLPIPS:
     """Shift-tolerant LPIPS, AlexNet variant, with the weights of the stlpips-pytorch wheel (read with
     weights_only=True and checked to cover every layer). Lower is more similar; inputs in [0, 1]."""

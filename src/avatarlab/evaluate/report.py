@@ -330,7 +330,7 @@ def renderer_table(results: Path) -> Table:
 
 
 AVATAR_COLUMNS = ["subject", "recipe", "init", "variant", "subset", "test_frames", "psnr", "best_baseline",
-                  "baseline_psnr", "gain", "ssim", "st_lpips", "lpips", "face_detection_rate", "landmark_nme",
+                  "baseline_psnr", "gain", "colour_matched_gain", "ssim", "st_lpips", "lpips", "face_detection_rate", "landmark_nme",
                   "identity_similarity", "train_seconds"]
 
 
@@ -345,7 +345,7 @@ def avatar_row(avatar: dict, part: str = "all") -> dict:
     return {"subject": avatar["subject"], "recipe": avatar["recipe"], "init": avatar["init"],
             "variant": avatar["variant"], "subset": part, "test_frames": scores["frames"], "psnr": m["psnr"],
             "best_baseline": g["best_baseline"], "baseline_psnr": g["baseline"], "gain": g["gain"],
-            "ssim": m["ssim"], "st_lpips": m.get("st_lpips"), "lpips": m.get("lpips"),
+            "colour_matched_gain": gain_columns(scores, "psnr_head_colour")["gain"], "ssim": m["ssim"], "st_lpips": m.get("st_lpips"), "lpips": m.get("lpips"),
             "face_detection_rate": m.get("face_detection_rate"), "landmark_nme": m.get("landmark_nme"),
             "identity_similarity": m.get("identity_similarity"), "train_seconds": avatar["train"]["train_seconds"]}
 
@@ -357,14 +357,19 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
                   "one nearest in fitted expression, jaw, neck and camera), composited into the same true mask. "
                   "face_detection_rate / landmark_nme / identity_similarity: dlib on the renders (NME against the "
                   "frame's tracked landmarks, outer-eye normalised). split: last_frames (INSTA protocol) or "
-                  "held_out_clips (every frame of a clip the avatar never saw).")
+                  "held_out_clips (every frame of a clip the avatar never saw). colour_matched_gain: a diagnostic, "
+                  "the head-region PSNR gain over the best baseline when every prediction (model and baselines "
+                  "alike) first takes each test frame's mean colour: structure without a recording's overall "
+                  "colour, which a clip never seen can have its own of.")
     for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
         runs = seeded_runs(avatars, subject, "final", final)
         if runs:
             table.add(**seeded_row(runs), split=runs[0]["eval"].get("split"))
     base = Table("final_avatar_baselines", "The same test frames, scored for each trivial baseline",
-                 ["subject", "predictor", "psnr", "ssim", "st_lpips", "face_detection_rate", "landmark_nme",
-                  "identity_similarity"], "Seed 0's avatar (the baselines do not depend on the seed).")
+                 ["subject", "predictor", "psnr", "psnr_head", "psnr_head_colour", "ssim", "st_lpips",
+                  "face_detection_rate", "landmark_nme", "identity_similarity"],
+                 "Seed 0's avatar (the baselines do not depend on the seed). psnr_head_colour: head-region PSNR "
+                 "with each frame's mean colour matched to the truth's first.")
     for a in avatars:
         if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             part = a["eval"]["all"]

@@ -3,15 +3,18 @@ from __future__ import annotations
 
 import torch
 
-from avatarlab.metrics import psnr, psnr_in_mask, ssim
+from avatarlab.metrics import psnr, psnr_colour_matched, psnr_in_mask, ssim
 
 #: metrics where lower is better
 LOWER_IS_BETTER = {"st_lpips", "lpips", "landmark_nme"}
 
 
 def image_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, perceptual: dict) -> dict:
-    """PSNR (whole image), head-region PSNR, SSIM and each perceptual metric (name -> callable or None)."""
-    out = {"psnr": psnr(pred, target), "psnr_head": psnr_in_mask(pred, target, mask), "ssim": ssim(pred, target)}
+    """PSNR (whole image), head-region PSNR, the same with each image's mean colour matched to the target's
+    (`psnr_head_colour`: a diagnostic of structure, for recordings whose colour no training frame had), SSIM and each
+    perceptual metric (name -> callable or None)."""
+    out = {"psnr": psnr(pred, target), "psnr_head": psnr_in_mask(pred, target, mask),
+           "psnr_head_colour": psnr_colour_matched(pred, target, mask), "ssim": ssim(pred, target)}
     for name, metric in perceptual.items():
         out[name] = metric(pred, target) if metric is not None else None
     return out
