@@ -116,15 +116,16 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
     return frames, sources, float(fps or 25.0), sorted(kinds)
 
 
-def stable_head_crop(frames, margin: float, samples: int, upsample: int) -> tuple[int, int, int]:
-    """One square crop (cx, cy, side) for all frames from face boxes on up to `samples` frames."""
+def stable_head_crop(frames, margin: float, samples: int, upsample: int, label: str = "all") -> tuple[int, int, int]:
+    """One square crop (cx, cy, side) for all frames (of the input `label`) from face boxes on up to `samples`
+    of them."""
     from avatarlab.preprocess.landmarks import detect_faces
 
     idx = np.unique(np.linspace(0, len(frames) - 1, min(samples, len(frames))).round().astype(int))
     boxes = [b for i in idx for b in detect_faces(frames[i], upsample)[:1]]
     h, w = frames[0].shape[:2]
     if not boxes:
-        log.warning("no face found on %d sampled frames: using a centred crop", len(idx))
+        log.warning("%s: no face found on %d sampled frames: using a centred crop", label, len(idx))
         side = min(h, w)
         return w // 2, h // 2, side
     boxes = np.array(boxes, dtype=np.float64)  # left, top, right, bottom
@@ -134,7 +135,6 @@ def stable_head_crop(frames, margin: float, samples: int, upsample: int) -> tupl
     cy = np.median((boxes[:, 1] + boxes[:, 3]) / 2) - 0.15 * size
     side = int(round(size * margin))
     return int(round(cx)), int(round(cy)), side
-
 
 
 def clip_ranges(sources: list[str]) -> list[tuple[int, int]]:
@@ -151,10 +151,10 @@ def choose_crops(frames, sources, pre, kinds) -> list[dict]:
     ranges = clip_ranges(sources) if pre.crop_per_clip else [(0, len(frames))]
     crops = []
     for first, stop in ranges:
+        source = sources[first] if len(ranges) > 1 else "all"
         cx, cy, side = stable_head_crop(frames[first:stop], float(pre.crop_margin), int(pre.crop_samples),
-                                        int(pre.detector_upsample))
-        crops.append({"source": sources[first] if len(ranges) > 1 else "all", "first": first, "count": stop - first,
-                      "cx": cx, "cy": cy, "side": side})
+                                        int(pre.detector_upsample), label=source)
+        crops.append({"source": source, "first": first, "count": stop - first, "cx": cx, "cy": cy, "side": side})
     return crops
 
 
