@@ -8,7 +8,7 @@ from helpers import SHARED_DATA, compose_config, interp_config
 from avatarlab.geometry import procrustes_error_mm
 from avatarlab.headmodel import HeadModel
 from avatarlab.preprocess.crop import crop_and_resize, crop_points, frame_crops
-from avatarlab.preprocess.fit_rgb import FitWeights, choose_keyframes, rgb_fit_loss
+from avatarlab.preprocess.fit_rgb import FitWeights, RGBFitter, choose_keyframes, fit_clip_lighting, rgb_fit_loss
 from avatarlab.preprocess.fit_rgbd import depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks
 from avatarlab.preprocess.frames import InputError, choose_crops, clip_ranges, expand_inputs, input_kind, read_video
 from avatarlab.preprocess.interp.network import XVFILite, backward_warp
@@ -151,6 +151,46 @@ def test_procrustes_error_ignores_similarity_transforms():
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     assert procrustes_error_mm(pts, 1.3 * pts @ R.T + 2.0) == pytest.approx(0.0, abs=1e-9)
     assert procrustes_error_mm(pts, pts + rng.normal(0, 0.001, pts.shape)) > 0.5
+
+
+def test_each_clip_of_a_video_gets_its_own_lighting(head_model):
+    """Two clips of one head under other light (the second warmer and darker, as another room or white balance):
+    refitted per clip from the shared lighting, the first clip's lighting stays put and the second's renders its
+    colour again."""
+    from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+    from omegaconf import OmegaConf
+
+    from avatarlab.render.lighting import default_lighting
+
+    size = 64
+    camera = orbit_camera(0.6, image_size=(size, size), batch=4)
+    fitter = RGBFitter(head_model, size, FitWeights(), 0.02, (0.35, 0.45, 0.55))
+    shared_light = default_lighting(1)
+    warm = shared_light.clone()
+    warm[:, 0] *= torch.tensor([1.15, 0.9, 0.7])
+    params = head_model.zeros(4)
+    shared = {"shape": params["shape"][:1], "texture": params["texture"][:1], "lighting": shared_light,
+              "focal": camera.K[:1, 0, 0].log()}
+    result = {"expression": params["expression"], "pose": params["pose"],
+              "rot": rotation_matrix_to_axis_angle(camera.R), "trans": camera.t}
+    with torch.no_grad():
+        renders = [fitter.render(**shared_of, **result)[0] for shared_of in
+                   (shared, dict(shared, lighting=warm))]
+    images = torch.cat([renders[0].rgb[:2], renders[1].rgb[2:]])
+    masks = torch.cat([renders[0].mask[:2], renders[1].mask[2:]])
+    landmarks = renders[0].landmarks2d
+    clips, fitted = np.array([0, 0, 1, 1]), np.ones(4, bool)
+    fit = OmegaConf.create({"lighting_frames": 1, "lighting_iterations": 150, "lighting_lr": 0.05})
+    lighting, losses = fit_clip_lighting(fitter, shared, result, fitted, images, landmarks, masks, clips, fit)
+    assert lighting.shape == (4, 9, 3) and len(losses) == 2
+    np.testing.assert_allclose(lighting[:2, 0], shared_light[:, 0].expand(2, -1), rtol=0.03)
+    with torch.no_grad():  # (the SH bands trade off on one side of a head: compared as images, not coefficients)
+        refit = fitter.render(**dict(shared, lighting=lighting[2:]), **{k: v[2:] for k, v in result.items()})[0]
+    error = ((refit.rgb - images[2:]).abs() * masks[2:]).sum() / masks[2:].sum()
+    shared_error = ((renders[0].rgb[2:] - images[2:]).abs() * masks[2:]).sum() / masks[2:].sum()
+    assert error < 0.2 * shared_error
+    colour = (refit.rgb * masks[2:]).sum((0, 2, 3)) / masks[2:].sum()
+    np.testing.assert_allclose(colour, (images[2:] * masks[2:]).sum((0, 2, 3)) / masks[2:].sum(), atol=0.01)
 
 
 def test_rgbd_pieces_are_exact_on_synthetic_depth(head_model, synthetic_frame):

@@ -106,6 +106,10 @@ class FitRGB:
     frame_rigid_iterations: int = at_least(0)
     frame_iterations: int = at_least(0)
     chunk: int = at_least(1)
+    lighting_per_clip: bool = MISSING
+    lighting_iterations: int = at_least(0)
+    lighting_lr: float = at_least(0)
+    lighting_frames: int = at_least(1)
     weights: dict = MISSING
 
 

@@ -4,10 +4,15 @@ Video: keyframes (at most a quarter of the frames, spread over the yaw range, ex
 shared shape, texture, lighting and focal length plus per-frame expression, pose and extrinsics; the other frames
 keep the shared values fixed and fit extrinsics, expression and pose with fewer iterations, warm-started from the
 nearest frame already fitted. Each fit starts rigid (extrinsics on the inner 51 landmarks), as in
-photometric_optimization. Writes `fit_rgb.npz`, `fit_rgb.json` and an overlay PNG.
+photometric_optimization. A subject filmed in several clips (several recordings: other rooms, cameras, white
+balance) then gets one SH lighting per clip (`fit_rgb.lighting_per_clip`), refitted photometrically on a few frames
+of each clip from the shared one with everything else fixed, so the appearance code carries each recording's light
+and colour, a clip never trained on included. Writes `fit_rgb.npz` (lighting (9, 3), or (frames, 9, 3) per clip),
+`fit_rgb.json` and an overlay PNG.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass
@@ -167,9 +172,34 @@ def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs, device=N
     return {k: v.to(device) for k, v in state.items()}
 
 
+def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.ndarray, images, lm_t, mask_t,
+                      clips: np.ndarray, fit) -> tuple[torch.Tensor, list[float]]:
+    """One SH lighting per clip: from the shared one, refitted (photometric + landmark terms, lighting and
+    extrinsics free, shape, texture, expression and pose fixed) on up to `fit.lighting_frames` fitted frames of each
+    clip, with the step `fit.lighting_lr`. -> lighting per frame (N, 9, 3), the clips' final losses."""
+    lighting = shared["lighting"].expand(len(clips), -1, -1).clone()
+    fitter = copy.copy(fitter)
+    fitter.lr = float(fit.lighting_lr)
+    losses = []
+    for clip in np.unique(clips):
+        members = np.nonzero((clips == clip) & fitted)[0]
+        if len(members) == 0:
+            continue
+        ids = members[np.unique(np.linspace(0, len(members) - 1, min(int(fit.lighting_frames), len(members)))
+                                .round().astype(int))]
+        init = dict(shared, expression=result["expression"][ids], pose=result["pose"][ids], rot=result["rot"][ids],
+                    trans=result["trans"][ids])
+        out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], torch.ones(len(ids), device=images.device),
+                                    init, {"lighting"}, int(fit.lighting_iterations), 0)
+        lighting[torch.from_numpy(clips == clip).to(lighting.device)] = out["lighting"]
+        losses.append(hist[-1] if hist else float("nan"))
+    return lighting, losses
+
+
 def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found: np.ndarray, masks: np.ndarray,
-              device: torch.device = CPU):
-    """Fits on `device` (the model, frames and parameters live there); the results stay there too."""
+              device: torch.device = CPU, clips: np.ndarray | None = None):
+    """Fits on `device` (the model, frames and parameters live there); the results stay there too. `clips`: each
+    frame's clip (video mode: more than one gives one lighting per clip, when the config asks for it)."""
     fit = cfg.fit_rgb
     model = load_head_model(cfg.head_model).to(device)
     size = frames.shape[1]
@@ -226,6 +256,9 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
             result[k][ids] = out[k]
         fitted[ids] = True
         hist_rest.append(hist[-1])
+    if clips is not None and len(np.unique(clips)) > 1 and fit.lighting_per_clip:
+        shared["lighting"], losses = fit_clip_lighting(fitter, shared, result, fitted, images, lm_t, mask_t, clips, fit)
+        log.info("one lighting per clip (%d clips), final losses %s", len(losses), np.round(losses, 4).tolist())
     seconds = time.perf_counter() - start
     return model, fitter, shared, result, fitted, key, seconds, hist_key
 
@@ -261,8 +294,9 @@ def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, f
     ids = np.nonzero(fitted)[0]
     per_image = shared["shape"].shape[0] > 1
     pick = (lambda v: v[ids]) if per_image else (lambda v: v)  # noqa: E731
+    lighting = shared["lighting"][ids] if per_image or shared["lighting"].shape[0] > 1 else shared["lighting"]
     out, camera = fitter.render(pick(shared["shape"]), result["expression"][ids], result["pose"][ids],
-                                pick(shared["texture"]), pick(shared["lighting"]), pick(shared["focal"]),
+                                pick(shared["texture"]), lighting, pick(shared["focal"]),
                                 result["rot"][ids], result["trans"][ids])
     lm_err = np.linalg.norm(out.landmarks2d.cpu().numpy() - landmarks[ids], axis=-1)
     iod = np.linalg.norm(landmarks[ids, 36] - landmarks[ids, 45], axis=-1)
@@ -334,8 +368,10 @@ def main(cfg, device) -> None:
     landmarks, found = subject.landmarks()
     with np.load(subject_dir / "masks.npz") as mk:
         masks = mk["masks"]
+    sources = subject.frames_meta()["sources"]
+    clips = np.unique(np.array(sources), return_inverse=True)[1]
     model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks,
-                                                                          device)
+                                                                          device, clips)
     images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
     out, camera, report = evaluate_fit(fitter, shared, result, fitted, images, np.nan_to_num(landmarks), found,
                                        masks)
@@ -359,8 +395,10 @@ def main(cfg, device) -> None:
     result["pose"][ids], result["trans"][ids] = pose, t_ids
     K[ids], R[ids] = camera.K.numpy(), R_ids.numpy()
     one = (lambda v: v.numpy()) if per_image else (lambda v: v[0].numpy())  # noqa: E731
+    per_frame_lighting = per_image or shared["lighting"].shape[0] > 1  # image sets, clips with their own light
     SubjectDir(subject_dir).write_fit(shape=one(shared["shape"]), texture=one(shared["texture"]),
-                                      lighting=one(shared["lighting"]), expression=result["expression"].numpy(),
+                                      lighting=shared["lighting"].numpy() if per_frame_lighting
+                                      else one(shared["lighting"]), expression=result["expression"].numpy(),
                                       pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(),
                                       fitted=fitted, keyframes=key, image_size=frames.shape[1])
     rendered = np.zeros_like(frames)
