@@ -340,6 +340,14 @@ def test_real_video_subject_runs_end_to_end(smoke_run, workdir):
     assert json.loads((folder / "landmarks.json").read_text())["detection_rate"] >= 0.9
     fit = json.loads((folder / "fit_rgb.json").read_text())
     assert fit["landmark_nme"] < 0.1 and "truth" not in fit
+    # one crop and one lighting per clip (the frames of a clip share them, other clips have their own)
+    clips = list(dict.fromkeys(frames["sources"]))
+    assert len(clips) >= 2 and [c["source"] for c in frames["crops"]] == clips
+    with np.load(folder / "fit_rgb.npz") as fitted:
+        lighting, sources = fitted["lighting"], np.array(frames["sources"])
+    assert lighting.shape == (12, 9, 3)
+    first, second = (lighting[sources == c] for c in clips[:2])
+    assert np.ptp(first, axis=0).max() == 0 and np.abs(first[0] - second[0]).max() > 1e-4
     ev = json.loads((workdir / "results/smoke/avatars/obama/final/beta6_from_alpha2/eval.json").read_text())
     assert ev["split"] == "held_out_clips" and len(set(frames["sources"][i] for i in ev["test_indices"])) == 1
     again = snakemake(workdir, subjects, "ablation_subjects=[]", "interp_subjects=[]", "transfers=[]",
