@@ -3,8 +3,9 @@
 The model renders each test frame from the frame's fitted expression, pose and camera; the baselines predict it
 from the frames the avatar's run saw alone (its training frames, and its validation frames when it had some): their
 pixelwise mean, the last of them, and the one nearest in fitted expression, jaw, neck and camera. All are composited
-into the test frame's true mask and scored the same way: PSNR, head-region PSNR, SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the
-render is a face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
+into the test frame's true mask and scored the same way: PSNR, head-region PSNR (also with each frame's mean colour
+matched), SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the render is a
+face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
 normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings).
 Writes `eval.json` and `test_frames.png` (truth, model, best baseline) and logs into the avatar's MLflow run.
 `python -m avatarlab.evaluate.avatar evaluate.model=.../model.pt finetune.subject_dir=... evaluate.out=...`

@@ -330,8 +330,8 @@ def renderer_table(results: Path) -> Table:
 
 
 AVATAR_COLUMNS = ["subject", "recipe", "init", "variant", "subset", "test_frames", "psnr", "best_baseline",
-                  "baseline_psnr", "gain", "colour_matched_gain", "ssim", "st_lpips", "lpips", "face_detection_rate", "landmark_nme",
-                  "identity_similarity", "train_seconds"]
+                  "baseline_psnr", "gain", "colour_matched_gain", "ssim", "st_lpips", "lpips", "face_detection_rate",
+                  "landmark_nme", "identity_similarity", "train_seconds"]
 
 
 SEEDED_COLUMNS = ["seeds", "psnr_ci95", "gain_ci95", "ssim_ci95", "st_lpips_ci95"]
@@ -345,7 +345,8 @@ def avatar_row(avatar: dict, part: str = "all") -> dict:
     return {"subject": avatar["subject"], "recipe": avatar["recipe"], "init": avatar["init"],
             "variant": avatar["variant"], "subset": part, "test_frames": scores["frames"], "psnr": m["psnr"],
             "best_baseline": g["best_baseline"], "baseline_psnr": g["baseline"], "gain": g["gain"],
-            "colour_matched_gain": gain_columns(scores, "psnr_head_colour")["gain"], "ssim": m["ssim"], "st_lpips": m.get("st_lpips"), "lpips": m.get("lpips"),
+            "colour_matched_gain": gain_columns(scores, "psnr_head_colour")["gain"], "ssim": m["ssim"],
+            "st_lpips": m.get("st_lpips"), "lpips": m.get("lpips"),
             "face_detection_rate": m.get("face_detection_rate"), "landmark_nme": m.get("landmark_nme"),
             "identity_similarity": m.get("identity_similarity"), "train_seconds": avatar["train"]["train_seconds"]}
 

@@ -12,7 +12,6 @@ and colour, a clip never trained on included. Writes `fit_rgb.npz` (lighting (9,
 """
 from __future__ import annotations
 
-import copy
 import logging
 import time
 from dataclasses import dataclass
@@ -138,8 +137,10 @@ class RGBFitter:
         return self.renderer(params, camera, lighting.expand(n, -1, -1)), camera
 
     def optimize(self, images, landmarks, masks, valid, init: dict, free: set[str], iterations: int,
-                 rigid_iterations: int) -> tuple[dict, list[float]]:
-        """images (B,3,H,W), landmarks (B,68,2), masks (B,1,H,W), valid (B,). Optimises the names in `free`."""
+                 rigid_iterations: int, lr: float | None = None) -> tuple[dict, list[float]]:
+        """images (B,3,H,W), landmarks (B,68,2), masks (B,1,H,W), valid (B,). Optimises the names in `free`, with
+        the step `lr` (None: the fitter's)."""
+        lr = self.lr if lr is None else lr
         state = {k: v.clone().requires_grad_(k in free | {"rot", "trans"}) for k, v in init.items()}
         history = []
         for stage, steps, names in (("rigid", rigid_iterations, {"rot", "trans"}),
@@ -147,7 +148,7 @@ class RGBFitter:
             if steps <= 0:
                 continue
             # translations are in metres: a tenth of the step of the unitless coefficients and radians
-            optim = torch.optim.Adam([{"params": [state[k]], "lr": self.lr * (0.1 if k == "trans" else 1.0)}
+            optim = torch.optim.Adam([{"params": [state[k]], "lr": lr * (0.1 if k == "trans" else 1.0)}
                                       for k in names])
             for _ in range(steps):
                 optim.zero_grad()
@@ -178,8 +179,6 @@ def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.
     extrinsics free, shape, texture, expression and pose fixed) on up to `fit.lighting_frames` fitted frames of each
     clip, with the step `fit.lighting_lr`. -> lighting per frame (N, 9, 3), the clips' final losses."""
     lighting = shared["lighting"].expand(len(clips), -1, -1).clone()
-    fitter = copy.copy(fitter)
-    fitter.lr = float(fit.lighting_lr)
     losses = []
     for clip in np.unique(clips):
         members = np.nonzero((clips == clip) & fitted)[0]
@@ -190,7 +189,7 @@ def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.
         init = dict(shared, expression=result["expression"][ids], pose=result["pose"][ids], rot=result["rot"][ids],
                     trans=result["trans"][ids])
         out, hist = fitter.optimize(images[ids], lm_t[ids], mask_t[ids], torch.ones(len(ids), device=images.device),
-                                    init, {"lighting"}, int(fit.lighting_iterations), 0)
+                                    init, {"lighting"}, int(fit.lighting_iterations), 0, lr=float(fit.lighting_lr))
         lighting[torch.from_numpy(clips == clip).to(lighting.device)] = out["lighting"]
         losses.append(hist[-1] if hist else float("nan"))
     return lighting, losses
@@ -294,7 +293,7 @@ def evaluate_fit(fitter: RGBFitter, shared, result, fitted, images, landmarks, f
     ids = np.nonzero(fitted)[0]
     per_image = shared["shape"].shape[0] > 1
     pick = (lambda v: v[ids]) if per_image else (lambda v: v)  # noqa: E731
-    lighting = shared["lighting"][ids] if per_image or shared["lighting"].shape[0] > 1 else shared["lighting"]
+    lighting = shared["lighting"][ids] if shared["lighting"].shape[0] > 1 else shared["lighting"]  # per frame or one
     out, camera = fitter.render(pick(shared["shape"]), result["expression"][ids], result["pose"][ids],
                                 pick(shared["texture"]), lighting, pick(shared["focal"]),
                                 result["rot"][ids], result["trans"][ids])
@@ -368,8 +367,7 @@ def main(cfg, device) -> None:
     landmarks, found = subject.landmarks()
     with np.load(subject_dir / "masks.npz") as mk:
         masks = mk["masks"]
-    sources = subject.frames_meta()["sources"]
-    clips = np.unique(np.array(sources), return_inverse=True)[1]
+    clips = subject.frame_clips()
     model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks,
                                                                           device, clips)
     images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
@@ -395,10 +393,10 @@ def main(cfg, device) -> None:
     result["pose"][ids], result["trans"][ids] = pose, t_ids
     K[ids], R[ids] = camera.K.numpy(), R_ids.numpy()
     one = (lambda v: v.numpy()) if per_image else (lambda v: v[0].numpy())  # noqa: E731
-    per_frame_lighting = per_image or shared["lighting"].shape[0] > 1  # image sets, clips with their own light
+    # per frame (image sets, clips with their own light) or the video's one
+    lighting = shared["lighting"].numpy() if shared["lighting"].shape[0] > 1 else one(shared["lighting"])
     SubjectDir(subject_dir).write_fit(shape=one(shared["shape"]), texture=one(shared["texture"]),
-                                      lighting=shared["lighting"].numpy() if per_frame_lighting
-                                      else one(shared["lighting"]), expression=result["expression"].numpy(),
+                                      lighting=lighting, expression=result["expression"].numpy(),
                                       pose=result["pose"].numpy(), K=K, R=R, t=result["trans"].numpy(),
                                       fitted=fitted, keyframes=key, image_size=frames.shape[1])
     rendered = np.zeros_like(frames)
