@@ -10,7 +10,15 @@ from avatarlab.headmodel import HeadModel
 from avatarlab.preprocess.crop import crop_and_resize, crop_points, frame_crops
 from avatarlab.preprocess.fit_rgb import FitWeights, RGBFitter, choose_keyframes, fit_clip_lighting, rgb_fit_loss
 from avatarlab.preprocess.fit_rgbd import depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks
-from avatarlab.preprocess.frames import InputError, choose_crops, clip_ranges, expand_inputs, input_kind, read_video
+from avatarlab.preprocess.frames import (
+    InputError,
+    choose_crops,
+    clip_ranges,
+    expand_inputs,
+    input_kind,
+    load_frames,
+    read_video,
+)
 from avatarlab.preprocess.interp.network import XVFILite, backward_warp
 from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal_vote
 from avatarlab.render import orbit_camera
@@ -55,6 +63,28 @@ def test_each_clip_has_its_crop_and_points_follow_their_frames_crop():
         np.testing.assert_allclose(mapped[i, 0], [xs.mean() + 0.5, ys.mean() + 0.5], atol=0.8)
     with pytest.raises(ValueError, match="do not cover every frame"):
         frame_crops({"crops": crops[:1], "count": 2})
+
+
+def test_two_inputs_with_one_file_name_stay_two_clips(tmp_path):
+    """`day1/clip` and `day2/clip`: two clips (two crops, two lightings, a clip to hold out), not one."""
+    import cv2
+
+    from avatarlab.data.subject_dir import SubjectDir
+
+    inputs = []
+    for day, value in (("day1", 40), ("day2", 200)):
+        folder = tmp_path / day / "clip"
+        folder.mkdir(parents=True)
+        for i in range(2 if day == "day1" else 3):
+            cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((24, 32, 3), value, np.uint8))
+        inputs.append(folder)
+    frames, sources, _, _ = load_frames(inputs + [inputs[0]], None, None)
+    assert len(frames) == 7 and sources[:2] == ["clip", "clip"] and sources[2] == str(inputs[1])
+    assert sources[5] == str(inputs[0]), "the same folder given twice is a third clip"
+    assert clip_ranges(sources) == [(0, 2), (2, 5), (5, 7)]
+    (tmp_path / "subject").mkdir()
+    (tmp_path / "subject" / "frames.json").write_text(json.dumps({"count": 7, "sources": sources}))
+    assert SubjectDir(tmp_path / "subject").frame_clips().tolist() == [0, 0, 1, 1, 1, 2, 2]
 
 
 def test_real_clips_filmed_at_other_distances_come_out_centred_and_the_same_size():

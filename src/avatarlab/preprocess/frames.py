@@ -92,6 +92,17 @@ def read_images(paths: list[Path]):
     return frames
 
 
+def source_label(path: Path, taken: list[str]) -> str:
+    """The label of an input's frames: its file name, or its whole path when an earlier input has that name
+    (two folders' `clip.mp4`), so that every input is a clip of its own (its crop, its lighting, its split)."""
+    if path.name not in taken:
+        return path.name
+    label, k = str(path), 2
+    while label in taken:  # the same file given twice
+        label, k = f"{path} #{k}", k + 1
+    return label
+
+
 def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float = 0.1):
     """-> frames (list of RGB uint8), source label per frame, fps, kind."""
     frames, sources, fps, kinds = [], [], None, set()
@@ -110,7 +121,7 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
             clip = read_images(files[: max_frames - len(frames)] if max_frames else files)
             fps = fps or 25.0
         frames += clip
-        sources += [path.name] * len(clip)
+        sources += [source_label(path, sources)] * len(clip)
         if max_frames and len(frames) >= max_frames:
             break
     return frames, sources, float(fps or 25.0), sorted(kinds)
