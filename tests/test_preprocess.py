@@ -18,6 +18,7 @@ from avatarlab.preprocess.frames import (
     input_kind,
     load_frames,
     read_video,
+    share_frames,
 )
 from avatarlab.preprocess.interp.network import XVFILite, backward_warp
 from avatarlab.preprocess.masks import fill_missing, grabcut_mask, iou, temporal_vote
@@ -85,6 +86,27 @@ def test_two_inputs_with_one_file_name_stay_two_clips(tmp_path):
     (tmp_path / "subject").mkdir()
     (tmp_path / "subject" / "frames.json").write_text(json.dumps({"count": 7, "sources": sources}))
     assert SubjectDir(tmp_path / "subject").frame_clips().tolist() == [0, 0, 1, 1, 1, 2, 2]
+
+
+def test_a_frame_cap_keeps_every_clip(tmp_path):
+    """`max_frames` caps a subject's frames in all, shared over its clips: eight clips capped at 12 frames are
+    still eight clips (at smoke scale obama was one clip, and holding one out left nothing to train on)."""
+    import cv2
+
+    assert share_frames([30, 30, 30], None) == [30, 30, 30] and share_frames([5, 6], 20) == [5, 6]
+    assert share_frames([20] * 8, 12) == [2, 2, 2, 2, 1, 1, 1, 1]
+    assert share_frames([1, 40, 40], 21) == [1, 10, 10], "a short clip gives its share to the others"
+    assert sum(share_frames([7, 3, 9, 2], 13)) == 13
+    inputs = []
+    for k, count in enumerate((6, 2, 6)):
+        folder = tmp_path / f"clip{k}"
+        folder.mkdir()
+        for i in range(count):
+            cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((8, 8, 3), 10 * i + 100 * k, np.uint8))
+        inputs.append(folder)
+    frames, sources, _, _ = load_frames(inputs, None, 8)
+    assert sources == ["clip0"] * 3 + ["clip1"] * 2 + ["clip2"] * 3
+    assert [int(f[0, 0, 0]) for f in frames] == [0, 10, 20, 100, 110, 200, 210, 220], "each clip's first frames"
 
 
 def test_real_clips_filmed_at_other_distances_come_out_centred_and_the_same_size():

@@ -103,14 +103,32 @@ def source_label(path: Path, taken: list[str]) -> str:
     return label
 
 
+def share_frames(counts: list[int], cap: int | None) -> list[int]:
+    """How many frames each input keeps: all of them when they fit in `cap`, else `cap` in all, shared as evenly as
+    the inputs allow (an input with fewer frames than its share gives the rest to the others), so that a capped
+    multi-clip subject still has every clip (its crop, its lighting, a clip to hold out)."""
+    if not cap or sum(counts) <= cap:
+        return list(counts)
+    keep, left = [0] * len(counts), cap
+    while left > 0:
+        room = [i for i, c in enumerate(counts) if keep[i] < c]
+        each = max(1, left // len(room))
+        for i in room:
+            take = min(each, counts[i] - keep[i], left)
+            keep[i] += take
+            left -= take
+    return keep
+
+
 def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float = 0.1):
-    """-> frames (list of RGB uint8), source label per frame, fps, kind."""
-    frames, sources, fps, kinds = [], [], None, set()
+    """-> frames (list of RGB uint8), source label per frame, fps, kind. At most `max_frames` in all, the first
+    frames of every input (`share_frames`)."""
+    clips, labels, fps, kinds = [], [], None, set()
     for path in inputs:
         kind = input_kind(path)
         kinds.add(kind)
         if kind == "video":
-            clip, clip_fps = read_video(path, target_fps, max_frames and max_frames - len(frames), max_missing)
+            clip, clip_fps = read_video(path, target_fps, max_frames, max_missing)
             fps = fps or clip_fps
         else:
             folder = path / "images" if kind == "insta" else path
@@ -118,12 +136,14 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
                                                            if f.suffix.lower() in IMAGE_SUFFIXES)
             if not files:
                 raise InputError(f"{folder}: no images found")
-            clip = read_images(files[: max_frames - len(frames)] if max_frames else files)
+            clip = read_images(files[:max_frames] if max_frames else files)
             fps = fps or 25.0
-        frames += clip
-        sources += [source_label(path, sources)] * len(clip)
-        if max_frames and len(frames) >= max_frames:
-            break
+        clips.append(clip)
+        labels.append(source_label(path, labels))
+    frames, sources = [], []
+    for clip, label, keep in zip(clips, labels, share_frames([len(c) for c in clips], max_frames)):
+        frames += clip[:keep]
+        sources += [label] * keep
     return frames, sources, float(fps or 25.0), sorted(kinds)
 
 
