@@ -118,7 +118,11 @@ def _digest_of(text, name):
 def test_plan_lists_the_dissertations_experiments():
     config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
     config.update(scale="smoke", subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
-    plan = Plan(config)
+    # the seeds: the scale's unless the workflow config names them
+    scales = {name: Steps(CONF_DIR, name, "procedural", []).compose().scale for name in ("smoke", "tiny")}
+    assert Plan(config, scale=scales["smoke"]).seeds == 2 and Plan(config, scale=scales["tiny"]).seeds == 3
+    config["seeds"] = 3
+    plan = Plan(config, scale=scales["smoke"])
     assert len(plan.pretrained) == 14 and plan.speech_models == ["lstm_noreg", "lstm_reg", "window"]
     outputs = plan.avatar_outputs()
     plain = [o for o in outputs if "/base/" in o and "_frames" not in o and "_seed" not in o]

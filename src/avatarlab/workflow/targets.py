@@ -104,7 +104,8 @@ class Plan:
         self.control_figures = {name: spec for name, spec in (config.get("control_figures") or {}).items()
                                 if all(m in self.pretrained for m in spec["models"])}
         self.ablation_subjects = [s for s in config.get("ablation_subjects", []) if s in self.subjects]
-        self.seeds = int(config.get("seeds", 1))
+        # the workflow config's `seeds`, else the scale's (conf/scale/<scale>.yaml workflow_seeds)
+        self.seeds = int(config.get("seeds") or (scale or {}).get("workflow_seeds") or 1)
         self.interp_subjects = [s for s in config.get("interp_subjects", []) if s in self.subjects]
         self.transfers = [(t["avatar"], t["source"]) for t in config.get("transfers", [])
                           if t["avatar"] in self.subjects and t["source"] in self.subjects]
