@@ -354,6 +354,19 @@ def test_augmented_audio_has_the_asked_noise_and_keeps_its_length():
 
 
 @needs_espeak
+def test_real_clips_can_be_limited_per_speaker(tmp_path):
+    from avatarlab.speech.real_eval import clip_paths
+
+    for speaker, names in (("grid", "cab"), ("obama", "yx")):
+        (tmp_path / speaker).mkdir()
+        for n in names:
+            (tmp_path / speaker / f"{n}.mp4").touch()
+    patterns = [str(tmp_path / "grid" / "*.mp4"), str(tmp_path / "obama" / "*.mp4")]
+    assert [p.name for p in clip_paths(patterns)] == ["a.mp4", "b.mp4", "c.mp4", "x.mp4", "y.mp4"]
+    assert [f"{p.parent.name}/{p.name}" for p in clip_paths(patterns, 2)] == [
+        "grid/a.mp4", "grid/b.mp4", "obama/x.mp4", "obama/y.mp4"]
+
+
 def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_model):
     """GRID and Obama clips (one without audio: skipped), a model with a phoneme head; every row's still mouth
     is the clip's mean shape scored on its own frames, the adapted models differ from the synthetic one."""

@@ -202,15 +202,19 @@ def evaluate_model(model: AudioToVisemes, clips: list[RealClip], sp, seed: int) 
     return out
 
 
-def clip_paths(patterns) -> list[Path]:
+def clip_paths(patterns, per_speaker: int | None = None) -> list[Path]:
+    """The clips the patterns match, sorted; with `per_speaker`, the first that many of each speaker (folder)."""
     patterns = [str(patterns)] if isinstance(patterns, str) else [str(p) for p in patterns]
-    return sorted({Path(c) for p in patterns for c in glob.glob(p)})
+    paths = sorted({Path(c) for p in patterns for c in glob.glob(p)})
+    if per_speaker:
+        paths = [p for p in paths if [q for q in paths if q.parent == p.parent].index(p) < int(per_speaker)]
+    return paths
 
 
 def run(cfg) -> dict:
     """The report of speech.real_models on speech.real_clips (what main writes to speech.real_eval_out)."""
     sp = cfg.speech
-    paths = clip_paths(sp.real_clips)
+    paths = clip_paths(sp.real_clips, sp.real_clips_per_speaker)
     if not paths:
         raise FileNotFoundError(f"speech.real_clips={list(sp.real_clips)}: no clips")
     spec = FeatureSpec(sample_rate=int(sp.sample_rate))
