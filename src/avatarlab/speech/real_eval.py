@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import glob
 import logging
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -206,9 +207,15 @@ def clip_paths(patterns, per_speaker: int | None = None) -> list[Path]:
     """The clips the patterns match, sorted; with `per_speaker`, the first that many of each speaker (folder)."""
     patterns = [str(patterns)] if isinstance(patterns, str) else [str(p) for p in patterns]
     paths = sorted({Path(c) for p in patterns for c in glob.glob(p)})
-    if per_speaker:
-        paths = [p for p in paths if [q for q in paths if q.parent == p.parent].index(p) < int(per_speaker)]
-    return paths
+    if not per_speaker:
+        return paths
+    seen = Counter()  # clips kept per speaker: the folder's name, as load_clip reads it
+    kept = []
+    for path in paths:
+        seen[path.parent.name] += 1
+        if seen[path.parent.name] <= int(per_speaker):
+            kept.append(path)
+    return kept
 
 
 def run(cfg) -> dict:
