@@ -25,7 +25,7 @@ rule finetune_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule finetune_avatar_seed:
@@ -53,7 +53,7 @@ rule finetune_avatar_seed:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule finetune_interp_variant:
@@ -83,7 +83,7 @@ rule finetune_interp_variant:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule evaluate_avatar:
@@ -117,7 +117,7 @@ rule evaluate_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
 
 
 rule novel_views:
@@ -138,7 +138,7 @@ rule novel_views:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.novel_views {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.apps.novel_views {params.args} threads={threads} > {log} 2>&1"
 
 
 rule reenact:
@@ -162,7 +162,7 @@ rule reenact:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.reenact {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.apps.reenact {params.args} threads={threads} > {log} 2>&1"
 
 
 rule telepresence:
@@ -181,7 +181,7 @@ rule telepresence:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.apps.telepresence {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.apps.telepresence {params.args} threads={threads} > {log} 2>&1"
 
 
 rule avatars_all:

@@ -16,7 +16,7 @@ rule render_demo:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.head_model_demo {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.head_model_demo {params.args} threads={threads} > {log} 2>&1"
 
 
 rule dlib_check:
@@ -37,4 +37,4 @@ rule dlib_check:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.dlib_check {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.dlib_check {params.args} threads={threads} > {log} 2>&1"

@@ -21,7 +21,7 @@ rule synthesize_subject:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.data.synthetic_subject {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.data.synthetic_subject {params.args} threads={threads} > {log} 2>&1"
 
 
 rule extract_frames:
@@ -40,7 +40,7 @@ rule extract_frames:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.frames {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.frames {params.args} threads={threads} > {log} 2>&1"
 
 
 rule detect_landmarks:
@@ -60,7 +60,7 @@ rule detect_landmarks:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.track_landmarks {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.track_landmarks {params.args} threads={threads} > {log} 2>&1"
 
 
 rule segment_masks:
@@ -80,7 +80,7 @@ rule segment_masks:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.masks {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.masks {params.args} threads={threads} > {log} 2>&1"
 
 
 rule fit_rgb:
@@ -103,7 +103,7 @@ rule fit_rgb:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.fit_rgb {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.fit_rgb {params.args} threads={threads} > {log} 2>&1"
 
 
 rule fit_rgbd:
@@ -125,7 +125,7 @@ rule fit_rgbd:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.fit_rgbd {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.fit_rgbd {params.args} threads={threads} > {log} 2>&1"
 
 
 rule train_interpolator:
@@ -149,7 +149,7 @@ rule train_interpolator:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.interp.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.interp.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule interpolate_frames:
@@ -171,4 +171,4 @@ rule interpolate_frames:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.preprocess.interp.run {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.preprocess.interp.run {params.args} threads={threads} > {log} 2>&1"

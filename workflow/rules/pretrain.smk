@@ -10,7 +10,7 @@ rule init_tracking:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.tracking init results {output} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.tracking init results {output} > {log} 2>&1"
 
 
 rule synthesize_portraits:
@@ -29,7 +29,7 @@ rule synthesize_portraits:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.data.portraits {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.data.portraits {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_alpha:
@@ -49,7 +49,7 @@ rule pretrain_alpha:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_beta:
@@ -71,7 +71,7 @@ rule pretrain_beta:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_resolution:
@@ -97,7 +97,7 @@ rule pretrain_resolution:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_run:
@@ -118,7 +118,7 @@ rule renderer_run:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule evaluate_pretrained:
@@ -145,7 +145,7 @@ rule evaluate_pretrained:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_experiment:
@@ -163,7 +163,7 @@ rule renderer_experiment:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.renderer_experiment {input.runs:q} --out {output.report:q}"
+        "python -m avatarlab.forkserver avatarlab.evaluate.renderer_experiment {input.runs:q} --out {output.report:q}"
         " --figure {output.figure:q} > {log} 2>&1"
 
 
@@ -199,4 +199,4 @@ rule control_figure:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.controls {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.controls {params.args} threads={threads} > {log} 2>&1"

@@ -24,4 +24,4 @@ rule report_tables:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.report {params.args} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.report {params.args} > {log} 2>&1"

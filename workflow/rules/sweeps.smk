@@ -29,7 +29,7 @@ rule sweep_finetune:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_evaluate_avatar:
@@ -61,7 +61,7 @@ rule sweep_evaluate_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_pretrain:
@@ -92,7 +92,7 @@ rule sweep_pretrain:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_evaluate_pretrained:
@@ -118,7 +118,7 @@ rule sweep_evaluate_pretrained:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_table:
@@ -140,7 +140,7 @@ rule sweep_table:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.evaluate.sweep_report --sweep {input.spec:q} --dir {params.folder:q} {params.seeds} > {log} 2>&1"
+        "python -m avatarlab.forkserver avatarlab.evaluate.sweep_report --sweep {input.spec:q} --dir {params.folder:q} {params.seeds} > {log} 2>&1"
 
 
 for _sweep in PLAN.sweeps:
