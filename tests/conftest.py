@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -28,3 +30,10 @@ def snakemake_bin():
     if exe is None:
         pytest.fail("snakemake is not installed in the test environment")
     return exe
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """The workflow tests' steps started a fork server (src/avatarlab/forkserver.py): end it with the suite rather
+    than after its idle time. Servers of edited repository copies (their own import path) end on their idle time."""
+    subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "--stop"], capture_output=True, timeout=60,
+                   cwd=session.config.rootpath)

@@ -128,3 +128,16 @@ def test_switched_off_it_runs_the_plain_way(served, tmp_path):
     inside_slurm = dict(env, SLURM_JOB_ID="7")
     inside_slurm.pop("AVATARLAB_FORKSERVER")
     assert "preloaded False" in _run(inside_slurm, tmp_path, "0").stdout, "off by default in a SLURM job"
+
+
+def test_a_socket_folder_others_can_enter_is_not_used(tmp_path):
+    from avatarlab.forkserver import connect, private_folder
+
+    folder = tmp_path / "sockets"
+    folder.mkdir(mode=0o700)
+    assert private_folder(folder)
+    folder.chmod(0o755)
+    assert not private_folder(folder) and connect(folder / "x.sock") is None
+    link = tmp_path / "link"
+    link.symlink_to(folder)
+    assert not private_folder(link), "a symlink is not the folder"

@@ -31,6 +31,7 @@ import os
 import select
 import signal
 import socket
+import stat
 import struct
 import subprocess
 import sys
@@ -111,7 +112,8 @@ def start_server(path: Path) -> None:
     """Start the server in the background (one at a time: the others find the lock taken), detached from this
     step's streams and session."""
     path.parent.mkdir(mode=0o700, exist_ok=True)
-    os.chmod(path.parent, 0o700)
+    if not private_folder(path.parent):
+        return
     lock = open(path.with_suffix(".lock"), "w")
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -124,7 +126,19 @@ def start_server(path: Path) -> None:
     lock.close()
 
 
+def private_folder(folder: Path) -> bool:
+    """The socket folder is a real directory of this user that nobody else may enter (else: no server, the plain
+    way; a folder planted by another user must not receive a step's environment and streams)."""
+    try:
+        info = os.lstat(folder)
+    except OSError:
+        return False
+    return stat.S_ISDIR(info.st_mode) and info.st_uid == os.getuid() and not info.st_mode & 0o077
+
+
 def connect(path: Path) -> socket.socket | None:
+    if not private_folder(path.parent):
+        return None
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         conn.connect(str(path))
