@@ -245,6 +245,7 @@ def serve(path: Path) -> None:
         with contextlib.suppress(OSError):
             if os.stat(path).st_ino == inode:  # still ours (a newer server may have replaced it)
                 path.unlink()
+                path.with_suffix(".lock").unlink(missing_ok=True)
         listener.close()
 
 
