@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from avatarlab.forkserver import PRELOAD, socket_path
+from avatarlab.tracking import TELEMETRY_OFF
 
 
 def run_step(cwd: Path, forked: bool, index: int) -> float:
@@ -39,7 +40,7 @@ def main() -> None:
     code = "import time, importlib; t = time.perf_counter()\n" \
            f"for m in {PRELOAD!r}: importlib.import_module(m)\nprint(time.perf_counter() - t)"
     imports = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                                   env=dict(os.environ, MLFLOW_DISABLE_TELEMETRY="true")).stdout)
+                                   env=dict(os.environ, **TELEMETRY_OFF)).stdout)
     print(f"importing what the server preloads: {imports:.2f} s")
     with tempfile.TemporaryDirectory() as tmp:
         cwd = Path(tmp)

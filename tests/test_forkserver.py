@@ -98,12 +98,17 @@ def _gone(pid: int, seconds=20) -> bool:
     return False
 
 
-def test_sigterm_to_the_client_ends_the_step(served, tmp_path):
+def _sleeping_step(served, tmp_path) -> tuple[subprocess.Popen, int]:
+    """A client whose forked step sleeps: the client's process and the step's pid."""
     root, env, _ = served
     pid_file = tmp_path / "pid"
     client = subprocess.Popen([sys.executable, "-m", "avatarlab.forkserver", "fs_step_module", "0", "--sleep",
                                str(pid_file)], env=env, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    step = _wait_for(pid_file)
+    return client, _wait_for(pid_file)
+
+
+def test_sigterm_to_the_client_ends_the_step(served, tmp_path):
+    client, step = _sleeping_step(served, tmp_path)
     assert step != client.pid, "the step runs in a fork of the server"
     client.send_signal(signal.SIGTERM)
     assert client.wait(timeout=30) == 128 + signal.SIGTERM
@@ -111,11 +116,7 @@ def test_sigterm_to_the_client_ends_the_step(served, tmp_path):
 
 
 def test_a_killed_client_takes_its_step_with_it(served, tmp_path):
-    root, env, _ = served
-    pid_file = tmp_path / "pid"
-    client = subprocess.Popen([sys.executable, "-m", "avatarlab.forkserver", "fs_step_module", "0", "--sleep",
-                               str(pid_file)], env=env, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    step = _wait_for(pid_file)
+    client, step = _sleeping_step(served, tmp_path)
     client.kill()
     client.wait(timeout=30)
     assert _gone(step), "the supervisor ends a step whose client is gone"

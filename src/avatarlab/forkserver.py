@@ -78,6 +78,16 @@ def _send(conn: socket.socket, message: dict, fds: list[int] | None = None) -> N
         conn.sendall(payload)
 
 
+def _read_exact(conn: socket.socket, size: int, data: bytes = b"") -> bytes | None:
+    """`data` completed to `size` bytes from the connection (None if it ends first)."""
+    while len(data) < size:
+        more = conn.recv(size - len(data))
+        if not more:
+            return None
+        data += more
+    return data
+
+
 def _recv(conn: socket.socket, with_fds: int = 0) -> tuple[dict | None, list[int]]:
     """One message (None at end of stream) and the file descriptors sent with it."""
     fds: list[int] = []
@@ -85,21 +95,9 @@ def _recv(conn: socket.socket, with_fds: int = 0) -> tuple[dict | None, list[int
         data, fds, _, _ = socket.recv_fds(conn, _HEADER.size, with_fds)
     else:
         data = conn.recv(_HEADER.size)
-    if not data:
-        return None, fds
-    while len(data) < _HEADER.size:
-        more = conn.recv(_HEADER.size - len(data))
-        if not more:
-            return None, fds
-        data += more
-    (size,) = _HEADER.unpack(data)
-    body = b""
-    while len(body) < size:
-        more = conn.recv(size - len(body))
-        if not more:
-            return None, fds
-        body += more
-    return json.loads(body), fds
+    header = _read_exact(conn, _HEADER.size, data) if data else None
+    body = header and _read_exact(conn, _HEADER.unpack(header)[0])
+    return (None if body is None else json.loads(body)), fds
 
 
 # ---------------------------------------------------------------------------------------------------- client
@@ -149,10 +147,10 @@ def connect(path: Path) -> socket.socket | None:
 
 
 def run_client(module: str, args: list[str]) -> int:
-    path = socket_path()
-    conn = connect(path) if enabled() else None
+    path, on = socket_path(), enabled()
+    conn = connect(path) if on else None
     if conn is None:
-        if enabled():
+        if on:
             with contextlib.suppress(OSError):
                 start_server(path)
         run_plain(module, args)
@@ -193,6 +191,7 @@ def _umask() -> int:
 
 # ---------------------------------------------------------------------------------------------------- server
 def serve(path: Path) -> None:
+    # tracking.TELEMETRY_OFF, spelled out: importing avatarlab.tracking here would keep a stale copy of it for every step
     os.environ.update({"MLFLOW_DISABLE_TELEMETRY": "true", "DO_NOT_TRACK": "true"})
     for name in PRELOAD:
         with contextlib.suppress(Exception):
