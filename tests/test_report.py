@@ -89,3 +89,28 @@ def test_the_readme_lists_every_substitution_of_the_report():
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     for what, theirs, ours, why in SUBSTITUTIONS:
         assert f"| {what} | {theirs} | {ours} | {why} |" in readme, what
+
+
+def test_the_tiny_sizes_substitution_states_tinys_config():
+    """The 'sizes (tiny)' row is prose; it must say what conf/scale/tiny.yaml sets, so it cannot go stale."""
+    from pathlib import Path
+
+    import yaml
+
+    from avatarlab.evaluate.report import SUBSTITUTIONS
+
+    tiny = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf/scale/tiny.yaml").read_text())
+    row = next(ours for what, _, ours, _ in SUBSTITUTIONS if what == "sizes (tiny)")
+
+    def n(value: int) -> str:
+        return f"{value:,}".replace(",", " ")
+
+    for part in (f"{tiny['nerf_depth']}x{tiny['nerf_width']} MLP", f"{tiny['nerf_samples']} samples",
+                 f"{tiny['pretrain_feature_size']}->{tiny['pretrain_image_size']} px", f"batch {tiny['pretrain_batch']}",
+                 f"{n(tiny['pretrain_alpha_iterations'])} + {n(tiny['pretrain_beta_iterations'])} iterations",
+                 f"{n(tiny['finetune_iterations'])} fine-tuning iterations (the final recipe "
+                 f"{n(tiny['finetune_final_iterations'])})",
+                 f"{tiny['finetune_freeze_layers']} of {tiny['nerf_depth']} layers frozen (the final recipe "
+                 f"{tiny['finetune_final_freeze_layers']})",
+                 "neck range [" + ", ".join(str(v) for v in tiny["synthetic_neck_deg"]) + "] deg"):
+        assert part in row, part
