@@ -398,3 +398,31 @@ def test_rgbd_fit_reaches_the_depth_noise_floor(head_model):
     assert new["accuracy_mm"] < 1.3 * new["noise_floor_mm"], new
     assert old["accuracy_mm"] > 1.5 * old["noise_floor_mm"], old
     assert new["shape_error_mm"] < old["shape_error_mm"]
+
+
+def test_the_rgb_fit_keeps_the_jaw_within_its_limits(head_model):
+    """A frame whose landmarks pull the jaw the closed way (as a bad local minimum did: -48 degrees on a talking
+    video's last frames) is fitted with the jaw at the limit, not beyond it; without limits it goes past it."""
+    size = 64
+    camera = orbit_camera(0.6, image_size=(size, size), batch=2)
+    from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+
+    from avatarlab.render.lighting import default_lighting
+
+    params = head_model.zeros(2)
+    target_pose = params["pose"].clone()
+    target_pose[:, 6] = -0.6  # a jaw turned 34 degrees the closed way: what the landmarks will ask for
+    state = {"shape": params["shape"][:1], "texture": params["texture"][:1], "lighting": default_lighting(1),
+             "focal": camera.K[:1, 0, 0].log(), "expression": params["expression"], "pose": params["pose"],
+             "rot": rotation_matrix_to_axis_angle(camera.R), "trans": camera.t}
+    limits = (np.radians(-6.0), np.radians(40.0))
+    fitted = {}
+    for name, jaw_limits in (("limited", limits), ("free", None)):
+        fitter = RGBFitter(head_model, size, FitWeights(photometric=0.0), 0.02, (0.35, 0.45, 0.55), jaw_limits)
+        with torch.no_grad():
+            target = fitter.render(**dict(state, pose=target_pose))[0]
+        out, _ = fitter.optimize(target.rgb, target.landmarks2d, target.mask, torch.ones(2), state, {"pose"}, 150, 0)
+        fitted[name] = out["pose"][:, 6]
+    assert torch.all(fitted["limited"] >= limits[0] - 1e-6), fitted["limited"]
+    assert torch.allclose(fitted["limited"], torch.full((2,), limits[0], dtype=torch.float32), atol=1e-3)
+    assert torch.all(fitted["free"] < limits[0] - 0.05), fitted["free"]  # the limit is what held it

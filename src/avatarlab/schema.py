@@ -110,6 +110,7 @@ class FitRGB:
     lighting_iterations: int = at_least(0)
     lighting_lr: float = at_least(0)
     lighting_frames: int = at_least(1)
+    jaw_limits_deg: list[float] = MISSING
     weights: dict = MISSING
 
 

@@ -120,11 +120,15 @@ def choose_keyframes(yaw: np.ndarray, count: int) -> np.ndarray:
 class RGBFitter:
     """Parameters as tensors, one Adam per stage, each loss term a named line with its weight from config."""
 
-    def __init__(self, model: HeadModel, image_size: int, weights: FitWeights, lr: float, background):
+    def __init__(self, model: HeadModel, image_size: int, weights: FitWeights, lr: float, background,
+                 jaw_limits: tuple[float, float] | None = None):
         self.model = model
         self.size = image_size
         self.weights = weights
         self.lr = lr
+        #: the jaw's opening angle (radians, pose[:, 6]) is kept in these bounds after every step: a jaw turned
+        #: 48 degrees the closed way once fitted the last frames of a talking video (and so its test frames)
+        self.jaw_limits = jaw_limits
         self.renderer = HeadRenderer(model, background=background)
 
     def render(self, shape, expression, pose, texture, lighting, focal, rot, trans):
@@ -161,6 +165,9 @@ class RGBFitter:
                                      INNER if stage == "rigid" else slice(None))
                 terms["total"].backward()
                 optim.step()
+                if self.jaw_limits is not None and "pose" in names:
+                    with torch.no_grad():
+                        state["pose"][:, 6].clamp_(*self.jaw_limits)
                 history.append(float(terms["total"].detach()))
         return {k: v.detach() for k, v in state.items()}, history
 
@@ -203,7 +210,8 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     model = load_head_model(cfg.head_model).to(device)
     size = frames.shape[1]
     weights = FitWeights(**fit.weights)
-    fitter = RGBFitter(model, size, weights, float(fit.lr), tuple(cfg.render.background))
+    fitter = RGBFitter(model, size, weights, float(fit.lr), tuple(cfg.render.background),
+                       tuple(np.radians(float(v)) for v in fit.jaw_limits_deg))
     focal0 = float(fit.initial_focal) * size
     K0 = intrinsics(focal0, (size, size))[0].numpy().astype(np.float64)
     idx = np.nonzero(found)[0]
