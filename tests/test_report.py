@@ -114,3 +114,16 @@ def test_the_tiny_sizes_substitution_states_tinys_config():
                  f"{tiny['finetune_final_freeze_layers']})",
                  "neck range [" + ", ".join(str(v) for v in tiny["synthetic_neck_deg"]) + "] deg"):
         assert part in row, part
+
+
+def test_the_rgb_fit_substitution_states_the_configured_jaw_limits():
+    from pathlib import Path
+
+    import yaml
+
+    from avatarlab.evaluate.report import SUBSTITUTIONS
+
+    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf/config.yaml").read_text())
+    low, high = config["fit_rgb"]["jaw_limits_deg"]
+    row = next(ours for what, _, ours, _ in SUBSTITUTIONS if what == "RGB fit")
+    assert f"fit_rgb.jaw_limits_deg ([{low:g}, {high:g}] degrees)" in row
