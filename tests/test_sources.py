@@ -115,3 +115,68 @@ def test_bad_inputs_name_the_file_and_the_problem(tmp_path, small_head):
         load_landmark_embedding(tmp_path / "plain.npy")
     with pytest.raises(HeadModelFileError, match="model_path"):
         load_head_model_data({"kind": "flame2020", "model_path": None, "landmark_path": None})
+
+
+def _cylindrical_uv_texture(head, colour=(204, 153, 128), size=64):
+    """A FLAME_texture.npz-layout texture space for `head`: a cylindrical unwrap (the face at u = 0.5), faces that
+    cross the seam at the back of the head mapped to one extra texel corner, and one flat skin colour (0..255)."""
+    x, y, z = head.v_template.T
+    u = np.arctan2(x, z) / (2 * np.pi) + 0.5
+    v = (y - y.min()) / np.ptp(y)
+    vt = np.concatenate([np.stack([u, v], 1), [[0.0, 0.0]]]).astype(np.float32)
+    ft = head.faces.copy()
+    ft[np.ptp(u[head.faces], axis=1) > 0.5] = len(vt) - 1
+    mean = np.broadcast_to(np.asarray(colour, np.float32), (size, size, 3)).copy()
+    return {"mean": mean, "tex_dir": np.zeros((size, size, 3, 2), np.float32), "vt": vt, "ft": ft}
+
+
+def test_alpha2_closes_flame2020s_open_mouth_with_new_faces_and_a_texture_edit(tmp_path, small_head):
+    """seed 002, 3.4: FLAME has no mouth interior; for alpha2 new faces (no new vertices) close the mouth and the
+    unwrap is painted there. With the jaw open, the background shows through alpha1's mouth and not alpha2's."""
+    from avatarlab.headmodel import load_head_model
+    from avatarlab.headmodel.mouth import MOUTH_COLOUR, boundary_loops
+
+    write_flame_layout_pickle(tmp_path / "generic_model.pkl", small_head)
+    np.save(tmp_path / "landmark_embedding.npy", {"full_lmk_faces_idx": small_head.lmk_faces_idx[None],
+                                                   "full_lmk_bary_coords": small_head.lmk_bary_coords[None]},
+            allow_pickle=True)
+    np.savez(tmp_path / "FLAME_texture.npz", **_cylindrical_uv_texture(small_head))
+    cfg = {"kind": "flame2020", "model_path": str(tmp_path / "generic_model.pkl"),
+           "landmark_path": str(tmp_path / "landmark_embedding.npy"), "texture_path": str(tmp_path / "FLAME_texture.npz"),
+           "n_shape": 6, "n_expression": 4, "n_texture": 2, "shape_components_in_file": 6}
+    alpha1, alpha2 = load_head_model(cfg), load_head_model(cfg, mouth_interior=True)
+    assert len(boundary_loops(alpha1.faces.numpy())) == 1 and boundary_loops(alpha2.faces.numpy()) == []
+    assert alpha2.num_vertices == alpha1.num_vertices and alpha2.faces.shape[0] > alpha1.faces.shape[0]
+    assert alpha2.source.endswith(":mouth") and not alpha1.source.endswith(":mouth")
+    torch.testing.assert_close(alpha2.faces[: alpha1.faces.shape[0]], alpha1.faces)
+    painted = (alpha2.albedo_model.mean - torch.tensor(MOUTH_COLOUR)).abs().sum(-1) < 1e-6
+    assert 0 < int(painted.sum()) < 0.05 * painted.numel() and not bool(
+        ((alpha1.albedo_model.mean - torch.tensor(MOUTH_COLOUR)).abs().sum(-1) < 1e-6).any())
+
+    def render(model, jaw):
+        p = model.zeros(1)
+        p["pose"][0, 6] = jaw
+        return HeadRenderer(model, background=(0, 1, 0))(p, orbit_camera(0.5, 0.0, 0.0, image_size=(128, 128)))
+
+    for model in (alpha1, alpha2):  # the landmarks, on the unchanged vertices, are the same
+        torch.testing.assert_close(render(model, 0.0).landmarks2d, render(alpha1, 0.0).landmarks2d)
+    open1, open2 = render(alpha1, 0.35), render(alpha2, 0.35)
+    cx, cy = open1.landmarks2d[0, 60:68].mean(0).round().long().tolist()
+    mouth = (slice(cy - 1, cy + 2), slice(cx - 1, cx + 2))
+    depth1, depth2 = float(open1.depth[0, 0][mouth].mean()), float(open2.depth[0, 0][mouth].mean())
+    rgb1, rgb2 = open1.rgb[0, :, mouth[0], mouth[1]].mean((1, 2)), open2.rgb[0, :, mouth[0], mouth[1]].mean((1, 2))
+    assert depth1 > depth2 + 0.05  # alpha1: the rays go through the open mouth to the inside of the head
+    assert abs(depth2 - float(open2.depth[0, 0, cy - 4, cx])) < 0.02  # alpha2: they stop at the lips' new faces
+    assert float(rgb2[0] / rgb2[1]) > 2.0 > float(rgb1[0] / rgb1[1])  # painted dark red, not the skin inside
+    closed1, closed2 = render(alpha1, 0.0), render(alpha2, 0.0)
+    assert float((closed1.rgb - closed2.rgb).abs().amax(1).gt(0.05).float().mean()) < 0.002  # jaw shut: no change
+
+
+def test_closing_the_mouth_of_a_mesh_without_an_opening_says_so():
+    from dataclasses import replace
+
+    from avatarlab.headmodel.mouth import close_mouth
+
+    closed = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3, mouth_interior=False))
+    with pytest.raises(HeadModelFileError, match="no open mouth"):
+        close_mouth(replace(close_mouth(closed), source="closed.pkl"))

@@ -5,6 +5,7 @@ import logging
 from pathlib import Path
 
 from avatarlab.headmodel.flame import COEFFICIENT_RANGE, POSE_DIM, POSE_JOINTS, HeadModel, HeadOutput, clip_coefficients  # noqa: F401
+from avatarlab.headmodel.mouth import close_mouth
 from avatarlab.headmodel.procedural import ProceduralSpec, load_procedural_head
 from avatarlab.headmodel.sources import HeadModelData, HeadModelFileError, load_flame2020  # noqa: F401
 
@@ -28,6 +29,8 @@ def load_head_model_data(cfg) -> HeadModelData:
         data = load_flame2020(Path(cfg["model_path"]), Path(cfg["landmark_path"]), cfg.get("texture_path"),
                               int(cfg.get("shape_components_in_file", 300)))
         log.info("head model: FLAME 2020 from %s (%d vertices)", cfg["model_path"], data.v_template.shape[0])
+        if cfg.get("mouth_interior", False):
+            data = close_mouth(data)  # alpha2's mouth (seed 002, 3.4): new faces and a texture edit
         return data
     raise ValueError(f"head_model.kind must be 'procedural' or 'flame2020', got {kind!r}")
 
