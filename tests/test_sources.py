@@ -180,3 +180,21 @@ def test_closing_the_mouth_of_a_mesh_without_an_opening_says_so():
     closed = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3, mouth_interior=False))
     with pytest.raises(HeadModelFileError, match="no open mouth"):
         close_mouth(replace(close_mouth(closed), source="closed.pkl"))
+
+
+def test_a_flame2020_model_gets_the_head_and_face_regions_the_pipeline_needs(tmp_path, small_head):
+    """FLAME's files name no regions; the portraits need `head` and the fits' truth errors `face`. Derived from the
+    skinning and the landmarks, on a FLAME-layout copy of the procedural head they match the regions it builds."""
+    write_flame_layout_pickle(tmp_path / "generic_model.pkl", small_head)
+    np.save(tmp_path / "landmark_embedding.npy", {"full_lmk_faces_idx": small_head.lmk_faces_idx[None],
+                                                   "full_lmk_bary_coords": small_head.lmk_bary_coords[None]},
+            allow_pickle=True)
+    data = load_head_model_data({"kind": "flame2020", "model_path": str(tmp_path / "generic_model.pkl"),
+                                 "landmark_path": str(tmp_path / "landmark_embedding.npy"),
+                                 "shape_components_in_file": 6})
+    head, face = data.regions["head"], data.regions["face"]
+    np.testing.assert_array_equal(head, small_head.regions["head"])
+    # the procedural face reaches up the forehead, the derived one stops at the brows: most of it, little else
+    theirs = small_head.regions["face"]
+    assert (face & theirs).sum() > 0.8 * theirs.sum() and (face & theirs).sum() > 0.6 * (face | theirs).sum()
+    assert not (data.regions["face"] & ~data.regions["head"]).any()
