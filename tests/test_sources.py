@@ -117,6 +117,14 @@ def test_bad_inputs_name_the_file_and_the_problem(tmp_path, small_head):
         load_head_model_data({"kind": "flame2020", "model_path": None, "landmark_path": None})
 
 
+def write_flame_layout_files(folder, head):
+    """generic_model.pkl and landmark_embedding.npy of `head` in FLAME 2020's layout."""
+    write_flame_layout_pickle(folder / "generic_model.pkl", head)
+    np.save(folder / "landmark_embedding.npy", {"full_lmk_faces_idx": head.lmk_faces_idx[None],
+                                                "full_lmk_bary_coords": head.lmk_bary_coords[None]},
+            allow_pickle=True)
+
+
 def _cylindrical_uv_texture(head, colour=(204, 153, 128), size=64):
     """A FLAME_texture.npz-layout texture space for `head`: a cylindrical unwrap (the face at u = 0.5), faces that
     cross the seam at the back of the head mapped to one extra texel corner, and one flat skin colour (0..255)."""
@@ -132,14 +140,11 @@ def _cylindrical_uv_texture(head, colour=(204, 153, 128), size=64):
 
 def test_alpha2_closes_flame2020s_open_mouth_with_new_faces_and_a_texture_edit(tmp_path, small_head):
     """seed 002, 3.4: FLAME has no mouth interior; for alpha2 new faces (no new vertices) close the mouth and the
-    unwrap is painted there. With the jaw open, the background shows through alpha1's mouth and not alpha2's."""
+    unwrap is painted for them. With the jaw open, alpha1's rays pass through the mouth into the head, alpha2's stop."""
     from avatarlab.headmodel import load_head_model
     from avatarlab.headmodel.mouth import MOUTH_COLOUR, boundary_loops
 
-    write_flame_layout_pickle(tmp_path / "generic_model.pkl", small_head)
-    np.save(tmp_path / "landmark_embedding.npy", {"full_lmk_faces_idx": small_head.lmk_faces_idx[None],
-                                                   "full_lmk_bary_coords": small_head.lmk_bary_coords[None]},
-            allow_pickle=True)
+    write_flame_layout_files(tmp_path, small_head)
     np.savez(tmp_path / "FLAME_texture.npz", **_cylindrical_uv_texture(small_head))
     cfg = {"kind": "flame2020", "model_path": str(tmp_path / "generic_model.pkl"),
            "landmark_path": str(tmp_path / "landmark_embedding.npy"), "texture_path": str(tmp_path / "FLAME_texture.npz"),
@@ -177,18 +182,15 @@ def test_closing_the_mouth_of_a_mesh_without_an_opening_says_so():
 
     from avatarlab.headmodel.mouth import close_mouth
 
-    closed = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3, mouth_interior=False))
+    open_mouth = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3, mouth_interior=False))
     with pytest.raises(HeadModelFileError, match="no open mouth"):
-        close_mouth(replace(close_mouth(closed), source="closed.pkl"))
+        close_mouth(replace(close_mouth(open_mouth), source="closed.pkl"))
 
 
 def test_a_flame2020_model_gets_the_head_and_face_regions_the_pipeline_needs(tmp_path, small_head):
     """FLAME's files name no regions; the portraits need `head` and the fits' truth errors `face`. Derived from the
     skinning and the landmarks, on a FLAME-layout copy of the procedural head they match the regions it builds."""
-    write_flame_layout_pickle(tmp_path / "generic_model.pkl", small_head)
-    np.save(tmp_path / "landmark_embedding.npy", {"full_lmk_faces_idx": small_head.lmk_faces_idx[None],
-                                                   "full_lmk_bary_coords": small_head.lmk_bary_coords[None]},
-            allow_pickle=True)
+    write_flame_layout_files(tmp_path, small_head)
     data = load_head_model_data({"kind": "flame2020", "model_path": str(tmp_path / "generic_model.pkl"),
                                  "landmark_path": str(tmp_path / "landmark_embedding.npy"),
                                  "shape_components_in_file": 6})

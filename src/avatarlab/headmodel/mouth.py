@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.draw import polygon as fill_polygon
 
+from avatarlab.headmodel.regions import template_landmarks
 from avatarlab.headmodel.sources import HeadModelData, HeadModelFileError, UVAlbedo
 
 log = logging.getLogger(__name__)
@@ -51,18 +52,12 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     return loops
 
 
-def landmark_points(data: HeadModelData) -> np.ndarray:
-    """The 68 landmarks on the template mesh (68, 3)."""
-    tri = data.v_template[data.faces[data.lmk_faces_idx]]
-    return (tri * data.lmk_bary_coords[:, :, None]).sum(1)
-
-
 def mouth_loop(data: HeadModelData) -> np.ndarray:
     """The boundary loop nearest the inner-lip landmarks, ordered. Raises if the mesh has no boundary there."""
     loops = boundary_loops(data.faces)
     if not loops:
         raise HeadModelFileError(f"{data.source}: the mesh has no boundary loop, so no open mouth to close")
-    inner = landmark_points(data)[INNER_LIPS]
+    inner = template_landmarks(data.v_template, data.faces, data.lmk_faces_idx, data.lmk_bary_coords)[INNER_LIPS]
     centre, size = inner.mean(0), np.linalg.norm(np.ptp(inner, 0))
     dist = [np.linalg.norm(data.v_template[loop].mean(0) - centre) for loop in loops]
     best = int(np.argmin(dist))
