@@ -200,3 +200,40 @@ def test_a_flame2020_model_gets_the_head_and_face_regions_the_pipeline_needs(tmp
     theirs = small_head.regions["face"]
     assert (face & theirs).sum() > 0.8 * theirs.sum() and (face & theirs).sum() > 0.6 * (face | theirs).sum()
     assert not (data.regions["face"] & ~data.regions["head"]).any()
+
+
+def test_flame2020_portraits_paint_the_hair_into_the_uv_texture(tmp_path):
+    """The FFHQ stand-in with a UV-textured FLAME model: the scalp (placed from the template's landmarks, so the same
+    vertices as the procedural head's on a FLAME-layout copy of it) is painted into the texels of the scalp faces."""
+    from helpers import compose_config
+
+    from avatarlab.data.portraits import hair_mask, hair_texels, render_portraits
+    from avatarlab.headmodel import load_head_model
+
+    head = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3))
+    write_flame_layout_files(tmp_path, head)
+    np.savez(tmp_path / "FLAME_texture.npz", **_cylindrical_uv_texture(head, size=256))
+    files = [f"head_model.model_path={tmp_path / 'generic_model.pkl'}",
+             f"head_model.landmark_path={tmp_path / 'landmark_embedding.npy'}",
+             f"head_model.texture_path={tmp_path / 'FLAME_texture.npz'}", "head_model.shape_components_in_file=6",
+             "head_model.n_shape=6", "head_model.n_expression=4", "head_model.n_texture=2"]
+    cfg = compose_config(["scale=smoke", "head_model=flame2020", *files, "subject.portraits=2", "subject.video_size=64"])
+    flame = load_head_model(cfg.head_model)
+    procedural = HeadModel(head)
+    hair = hair_mask(flame)
+    assert torch.equal(hair, hair_mask(procedural)) and 0.1 < float(hair.float().mean()) < 0.6
+    texels = hair_texels(flame, hair)
+    assert texels.shape == (256, 256) and 0 < int(texels.sum()) < texels.numel()
+    uv, uv_faces = flame.albedo_model.uv.numpy(), flame.albedo_model.uv_faces.numpy()
+    faces = flame.faces.numpy()
+
+    def texel(face):  # the texel under a face's UV centroid
+        u, v = uv[uv_faces[face]].mean(0)
+        return min(int((1 - v) * 256), 255), min(int(u * 256), 255)
+
+    scalp = np.flatnonzero(hair.numpy()[faces].all(1))
+    face = np.flatnonzero(head.regions["face"][faces].all(1))  # the procedural head's own face region
+    assert np.mean([texels[texel(f)] for f in scalp]) > 0.9 and np.mean([texels[texel(f)] for f in face]) < 0.01
+    params, chunks, source = render_portraits(cfg)
+    images = np.concatenate(list(chunks))
+    assert images.shape == (2, 64, 64, 3) and source.startswith("flame2020") and params["shape"].shape == (2, 6)

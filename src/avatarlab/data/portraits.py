@@ -19,7 +19,8 @@ from PIL import Image
 from avatarlab.config import CPU
 from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
-from avatarlab.headmodel.flame import clip_coefficients
+from avatarlab.headmodel.flame import clip_coefficients, vertices_to_landmarks
+from avatarlab.headmodel.mouth import uv_coverage
 from avatarlab.io import atomic_path
 from avatarlab.render.camera import orbit_camera
 from avatarlab.render.head_renderer import HeadRenderer
@@ -32,11 +33,25 @@ HAIR_COLOURS = np.array([[0.08, 0.06, 0.05], [0.25, 0.15, 0.08], [0.45, 0.3, 0.1
 
 
 def hair_mask(model) -> torch.Tensor:
-    """Scalp vertices: above the forehead at the front, above the nape at the back."""
-    v = model.buffers_.v_template
-    head = model.regions["head"]
-    front = v[:, 2] > 0.03
-    return head & ((front & (v[:, 1] > 0.072)) | (~front & (v[:, 1] > -0.03)))
+    """Scalp vertices (V,) bool: above the brows at the front of the head, above the nape at the back. The levels
+    are placed from the template's own landmarks in units of its eye-to-chin height (so they fit FLAME 2020 as well
+    as the procedural head, where they are the brows + 0.17, the eyes - 0.52 and the nose tip - 0.68 units)."""
+    b = model.buffers_
+    v = b.v_template
+    landmarks = vertices_to_landmarks(v[None], b.faces, b.lmk_faces_idx, b.lmk_bary)[0]
+    eye_y, brow_y = landmarks[36:48, 1].mean(), landmarks[17:27, 1].mean()
+    unit = eye_y - landmarks[8, 1]
+    front = v[:, 2] > landmarks[30, 2] - 0.68 * unit
+    return model.regions["head"] & ((front & (v[:, 1] > brow_y + 0.17 * unit)) | (~front & (v[:, 1] > eye_y - 0.52 * unit)))
+
+
+def hair_texels(model, hair: torch.Tensor) -> torch.Tensor:
+    """For a UV texture: the texels (H, W) bool of the faces whose three vertices are all scalp vertices."""
+    albedo = model.albedo_model
+    faces = model.buffers_.faces.cpu()
+    scalp = hair.cpu()[faces].all(1)
+    return torch.from_numpy(uv_coverage(albedo.uv.cpu().numpy(), albedo.uv_faces.cpu().numpy()[scalp.numpy()],
+                                        tuple(albedo.mean.shape[:2])))
 
 
 @torch.no_grad()
@@ -55,6 +70,8 @@ def render_portraits(cfg: DictConfig, device: torch.device = CPU, chunk: int = 1
     lighting = default_lighting(count) * (0.8 + 0.4 * torch.rand(count, 1, 1, generator=g))
     lighting[:, 1:4] += (torch.rand(count, 3, 3, generator=g) - 0.5) * 0.6
     hair = hair_mask(model)
+    if model.albedo_model.is_uv:  # the hair painted into the texture: its texels instead of its vertices
+        hair = hair_texels(model, hair)
     colours = torch.from_numpy(HAIR_COLOURS).float()[torch.randint(0, len(HAIR_COLOURS), (count,), generator=g)]
     hair_shade = colours[:, None] * (0.85 + 0.3 * torch.rand(count, int(hair.sum()), 1, generator=g))
     camera = orbit_camera(1.0 + 0.1 * torch.randn(count, generator=g), 0.0, 0.0, target=(0.0, 0.0, 0.0),
@@ -67,7 +84,12 @@ def render_portraits(cfg: DictConfig, device: torch.device = CPU, chunk: int = 1
             s = slice(start, start + chunk)
             on = {k: v[s].to(device) for k, v in params.items()}
             albedo = model.albedo(on["texture"])
-            albedo[:, hair.to(device)] = hair_shade[s].to(device)
+            if model.albedo_model.is_uv:  # (n, 3, H, W)
+                albedo = albedo.permute(0, 2, 3, 1).clone()
+                albedo[:, hair.to(device)] = hair_shade[s].to(device)
+                albedo = albedo.permute(0, 3, 1, 2)
+            else:  # (n, V, 3)
+                albedo[:, hair.to(device)] = hair_shade[s].to(device)
             geo = model(on["shape"], on["expression"], on["pose"])
             cam = type(camera)(K=camera.K[s], R=camera.R[s], t=camera.t[s], image_size=camera.image_size).to(device)
             out = renderer.mesh_renderer(geo.vertices, albedo, cam, lighting[s].to(device))
