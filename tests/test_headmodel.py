@@ -162,6 +162,8 @@ def test_mouth_interior_variant_and_cache(tmp_path):
     assert (rest[lower, 1] - v_open[lower, 1]).mean() > 0.002, "the lower mouth interior must follow the jaw"
     plain = load_procedural_head(ProceduralSpec(n_shape=10, n_expression=10, n_texture=5), tmp_path)
     assert plain.v_template.shape[0] < cached.v_template.shape[0]
+    with pytest.raises(ValueError, match="unresolved interpolation"):  # a raw head_model group read without the root
+        load_procedural_head(spec, "${paths.cache}/headmodel")
 
 
 def test_generation_is_deterministic():

@@ -567,6 +567,9 @@ def load_procedural_head(spec: ProceduralSpec, cache_dir: str | Path | None = No
     """Build the procedural head, or read it from `cache_dir` (written atomically) if an identical spec was built."""
     if cache_dir is None:
         return build_procedural_head(spec)
+    if "${" in str(cache_dir):  # a head_model group read without the root config: its ${paths.cache} is unresolved
+        raise ValueError(f"head model cache_dir {str(cache_dir)!r} holds an unresolved interpolation; compose the "
+                         "whole config (avatarlab.config.compose_config) or pass a real folder")
     path = Path(cache_dir) / f"procedural_{spec.digest()}.npz"
     if path.is_file():
         try:
