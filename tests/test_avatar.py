@@ -222,6 +222,82 @@ def parent_model(tmp_path_factory):
     return folder / "alpha1" / "model.pt", net
 
 
+def test_weight_average_is_the_exponential_moving_average_and_swaps_back():
+    from avatarlab.train.loop import WeightAverage
+
+    net = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))
+    with torch.no_grad():
+        net[0].weight.fill_(1.0)
+    ema = WeightAverage(net, 0.75)
+    assert "1.num_batches_tracked" not in ema.state_dict(), "integer buffers are not averaged"
+    for value in (5.0, 9.0):
+        with torch.no_grad():
+            net[0].weight.fill_(value)
+        ema.update(net)
+    expected = 0.75 * (0.75 * 1.0 + 0.25 * 5.0) + 0.25 * 9.0  # 4.0
+    torch.testing.assert_close(ema.state_dict()["0.weight"], torch.full((2, 2), expected))
+    with ema.swapped_in(net):
+        torch.testing.assert_close(net[0].weight.detach(), torch.full((2, 2), expected))
+    torch.testing.assert_close(net[0].weight.detach(), torch.full((2, 2), 9.0)), "training weights back after it"
+    resumed = WeightAverage(net, 0.75, ema.state_dict())
+    torch.testing.assert_close(resumed.state_dict()["0.weight"], torch.full((2, 2), expected))
+    with pytest.raises(ValueError, match="ema_decay"):
+        WeightAverage(net, 1.0)
+
+
+def test_ema_decay_outside_zero_to_one_is_a_config_error():
+    from avatarlab.schema import problems
+    from avatarlab.train import finetune
+
+    assert any("finetune.ema_decay: must be below 1" in p
+               for p in problems(step_cfg(finetune, ["finetune.ema_decay=1.0"])))
+    assert any("finetune.ema_decay: must be at least 0" in p
+               for p in problems(step_cfg(finetune, ["finetune.ema_decay=-0.1"])))
+    assert not [p for p in problems(step_cfg(finetune, ["finetune.ema_decay=0.99"])) if "ema_decay" in p]
+
+
+@pytest.mark.slow
+def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, parent_model, monkeypatch):
+    from avatarlab.train import finetune
+
+    path, _ = parent_model
+    subject = fake_video_subject(tmp_path / "subject", count=8)
+
+    def cfg(name, decay):
+        return step_cfg(finetune, tiny_model_overrides() + [
+            f"finetune.subject_dir={subject}", f"finetune.init_model={path}", "finetune.test_frames=2",
+            f"finetune.out_dir={tmp_path / name}", "finetune.iterations=6", "finetune.snapshots=2",
+            "finetune.checkpoint_every=2", f"finetune.ema_decay={decay}", "tracking.enabled=false"])
+
+    last_iterate, plain, _ = finetune.finetune_avatar(cfg("plain", 0.0), torch.device("cpu"))
+    full_net, full, _ = finetune.finetune_avatar(cfg("full", 0.5), torch.device("cpu"))
+    assert [h["loss"] for h in full.history] == [h["loss"] for h in plain.history], "averaging does not steer training"
+    moved = [not torch.allclose(p, q) for p, q in zip(last_iterate.parameters(), full_net.parameters())]
+    assert any(moved), "the avatar is the average, not the last iterate"
+    real_step = torch.optim.Adam.step
+    calls = {"n": 0}
+
+    def dying_step(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt("killed")
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", dying_step)
+    with pytest.raises(KeyboardInterrupt):
+        finetune.finetune_avatar(cfg("killed", 0.5), torch.device("cpu"))
+    monkeypatch.setattr(torch.optim.Adam, "step", real_step)
+    saved = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
+    assert saved["ema"] is not None and saved["step"] == full.start + 2
+    net, resumed, _ = finetune.finetune_avatar(cfg("killed", 0.5), torch.device("cpu"))
+    for p, q in zip(full_net.parameters(), net.parameters()):
+        torch.testing.assert_close(p, q)
+    name = f"step_{full.start + 3:07d}.pt"  # the curve's weights are the average too, swapped in for the snapshot
+    averaged = torch.load(tmp_path / "full" / "snapshots" / name, weights_only=True)["state"]
+    iterate = torch.load(tmp_path / "plain" / "snapshots" / name, weights_only=True)["state"]
+    assert any(not torch.allclose(averaged[k], iterate[k]) for k in iterate if iterate[k].is_floating_point())
+
+
 @pytest.mark.slow
 def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, parent_model):
     from avatarlab.train import finetune

@@ -21,6 +21,11 @@ def at_least(bound: float):
     return field(default=MISSING, metadata={"min": bound})
 
 
+def in_range(low: float, below: float):
+    """low <= value < below."""
+    return field(default=MISSING, metadata={"min": low, "below": below})
+
+
 def one_of(*choices: str):
     return field(default=MISSING, metadata={"choices": choices})
 
@@ -223,6 +228,7 @@ class Finetune:
     offset_lr: float = at_least(0)
     lr_decay: str = one_of("none", "cosine")
     lr_final: float = at_least(0)
+    ema_decay: float = in_range(0, 1)
     fixed_codes: list[str] = MISSING
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING
@@ -408,6 +414,9 @@ def problems(cfg: DictConfig) -> list[str]:
             low, choices = f.metadata.get("min"), f.metadata.get("choices")
             if low is not None and value is not None and not isinstance(value, (list, dict)) and value < low:
                 found.append(f"{section}.{f.name}: must be at least {low}, got {value!r}")
+            below = f.metadata.get("below")
+            if below is not None and value is not None and not isinstance(value, (list, dict)) and value >= below:
+                found.append(f"{section}.{f.name}: must be below {below}, got {value!r}")
             if choices and value not in choices:
                 found.append(f"{section}.{f.name}: expected one of {', '.join(choices)}, got {value!r}")
         for key in values:

@@ -53,7 +53,7 @@ def recipe_of(cfg, start: int) -> Recipe:
                   w_mask=float(m.w_mask),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
                   log_every=int(ft.log_every), amp=bool(cfg.amp), snapshots=snapshots, lr_decay=str(ft.lr_decay),
-                  lr_final=float(ft.lr_final))
+                  lr_final=float(ft.lr_final), ema_decay=float(ft.ema_decay))
 
 
 @torch.no_grad()

@@ -8,6 +8,7 @@ exactly where it stopped (weights, optimiser, offsets, every RNG, the history an
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -52,6 +53,8 @@ class Recipe:
     snapshots: tuple[int, ...] = ()  # iterations after which the weights are handed to `on_snapshot`
     lr_decay: str = "none"  # none (constant rates) | cosine (every rate falls along a cosine from `start` to N)
     lr_final: float = 0.0  # cosine: the rates at N, as a fraction of the initial ones
+    ema_decay: float = 0.0  # >0: the result (and the snapshots) are an exponential moving average of the weights,
+    #                         ema = d * ema + (1 - d) * w after every iteration, started from the initial weights
 
 
 LR_DECAYS = ("none", "cosine")
@@ -82,6 +85,44 @@ class TrainResult:
     @property
     def samples_per_second(self) -> float:
         return (self.step - self.start) * self.batch / max(self.seconds, 1e-9)
+
+
+class WeightAverage:
+    """An exponential moving average of a network's floating-point weights and buffers (Polyak averaging): the
+    weights of the last ~1 / (1 - decay) iterations averaged, so the result is not one noisy iterate. Not in the
+    dissertation, which takes the last iterate; a setting of the fine-tuning recipe (README, "Weight averaging")."""
+
+    def __init__(self, net: torch.nn.Module, decay: float, state: dict | None = None):
+        if not 0.0 < decay < 1.0:
+            raise ValueError(f"ema_decay must lie in (0, 1), got {decay}")
+        self.decay = decay
+        self.names = [k for k, v in net.state_dict().items() if v.is_floating_point()]
+        current = net.state_dict()
+        source = state if state is not None else current
+        self.values = {k: source[k].detach().clone().to(current[k]) for k in self.names}
+
+    @torch.no_grad()
+    def update(self, net: torch.nn.Module) -> None:
+        current = net.state_dict()
+        torch._foreach_lerp_([self.values[k] for k in self.names], [current[k] for k in self.names],
+                             1.0 - self.decay)
+
+    def state_dict(self) -> dict:
+        return dict(self.values)
+
+    @torch.no_grad()
+    def copy_to(self, net: torch.nn.Module) -> None:
+        net.load_state_dict(self.values, strict=False)
+
+    @contextlib.contextmanager
+    def swapped_in(self, net: torch.nn.Module):
+        """The average in `net` for the block (e.g. a snapshot), the training weights back after it."""
+        kept = {k: v.detach().clone() for k, v in net.state_dict().items() if k in self.values}
+        self.copy_to(net)
+        try:
+            yield net
+        finally:
+            net.load_state_dict(kept, strict=False)
 
 
 def offset_table(real_count: int, dims: dict[str, int], fixed, device) -> torch.nn.ParameterDict:
@@ -163,6 +204,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
         torch.set_rng_state(state["torch_rng"])
         step, seconds, history = int(state["step"]), float(state["seconds"]), list(state["history"])
     reported = len(history)
+    ema = WeightAverage(net, recipe.ema_decay, (state or {}).get("ema")) if recipe.ema_decay > 0 else None
     stream = BatchStream(source, step, recipe.schedule.N, g)
     net.train()
     try:
@@ -173,24 +215,33 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                 group["lr"] = base * factor
             entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device)
             step += 1
+            if ema is not None:
+                ema.update(net)
             history.append({"step": step, **entry, "lr_factor": factor})
             if step % max(1, recipe.log_every) == 0:
                 log.info("it %d/%d p=%.2f loss %.4f psnr %.2f", step, recipe.schedule.N, entry["p_synthetic"],
                          entry["loss"], entry["psnr"])
             if on_snapshot is not None and step in recipe.snapshots:
-                on_snapshot(step, seconds + time.perf_counter() - t0)
+                if ema is None:
+                    on_snapshot(step, seconds + time.perf_counter() - t0)
+                else:
+                    with ema.swapped_in(net):
+                        on_snapshot(step, seconds + time.perf_counter() - t0)
             if step % max(1, recipe.checkpoint_every) == 0 or step == recipe.schedule.N:
                 seconds += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 checkpoint.save({"model": net.state_dict(), "offsets": offsets.state_dict(),
                                  "optim": optim.state_dict(), "scaler": scaler.state_dict() if scaler.is_enabled()
                                  else None, "generator": stream.resume_state(), "torch_rng": torch.get_rng_state(),
-                                 "step": step, "seconds": seconds, "history": history, **(extra or {})})
+                                 "step": step, "seconds": seconds, "history": history,
+                                 "ema": ema.state_dict() if ema is not None else None, **(extra or {})})
                 if on_progress is not None:
                     on_progress(history[reported:])
                 reported = len(history)
     finally:
         stream.close()
+    if ema is not None:
+        ema.copy_to(net)
     net.eval()
     return TrainResult(history=history, seconds=seconds, start=recipe.start, step=step, batch=recipe.batch,
                        offsets=offsets)
