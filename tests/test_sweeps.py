@@ -27,7 +27,10 @@ def test_expansion_is_hydras_grammar_and_cartesian_product():
 
 def test_the_shipped_sweeps_load():
     sweeps = load_sweeps()
-    assert {"finetune_lr", "beta4_pmax", "neck_range"} <= set(sweeps)
+    assert {"finetune_lr", "beta4_pmax", "neck_range", "finetune_ema"} <= set(sweeps)
+    ema = sweeps["finetune_ema"]
+    assert (ema.recipe, ema.subject, len(ema.points)) == ("final", "synth_turns", 9)
+    assert {p.values["finetune.ema_decay"] for p in ema.points} == {0.0, 0.99, 0.997}
     lr = sweeps["finetune_lr"]
     assert lr.step == "finetune" and len(lr.points) == 9 and lr.subject == "synth_talk"
     assert sweeps["beta4_pmax"].parent == "alpha1" and len(sweeps["beta4_pmax"].points) == 6
