@@ -6,6 +6,7 @@ import pytest
 import torch
 from helpers import fake_real_set, fake_video_subject, step_cfg
 from helpers.subjects import tiny_model_overrides
+from helpers.training import killed_at_optimizer_step
 
 from avatarlab.data.splits import mouth_open_subset, subject_split
 from avatarlab.entry import InputError
@@ -274,19 +275,8 @@ def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, paren
     assert [h["loss"] for h in full.history] == [h["loss"] for h in plain.history], "averaging does not steer training"
     moved = [not torch.allclose(p, q) for p, q in zip(last_iterate.parameters(), full_net.parameters())]
     assert any(moved), "the avatar is the average, not the last iterate"
-    real_step = torch.optim.Adam.step
-    calls = {"n": 0}
-
-    def dying_step(self, *a, **k):
-        calls["n"] += 1
-        if calls["n"] == 4:
-            raise KeyboardInterrupt("killed")
-        return real_step(self, *a, **k)
-
-    monkeypatch.setattr(torch.optim.Adam, "step", dying_step)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_optimizer_step(monkeypatch, 4):
         finetune.finetune_avatar(cfg("killed", 0.5), torch.device("cpu"))
-    monkeypatch.setattr(torch.optim.Adam, "step", real_step)
     saved = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
     assert saved["ema"] is not None and saved["step"] == full.start + 2
     net, resumed, _ = finetune.finetune_avatar(cfg("killed", 0.5), torch.device("cpu"))

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 from helpers import compose_config, fake_real_set, step_cfg
+from helpers.training import killed_at_optimizer_step
 
 from avatarlab.data.schedule import scaled_schedule, synthetic_probability
 from avatarlab.model.cnerf import (
@@ -275,19 +276,8 @@ def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay):
     expected_final = 1.0 if decay == "none" else 0.05
     assert full.history[0]["lr_factor"] == 1.0 and full.history[-1]["lr_factor"] == pytest.approx(expected_final)
     cfg = pretrain_cfg(tmp_path, "killed", *settings)
-    real_step = torch.optim.Adam.step
-    calls = {"n": 0}
-
-    def dying_step(self, *a, **k):
-        calls["n"] += 1
-        if calls["n"] == 5:
-            raise KeyboardInterrupt("killed")
-        return real_step(self, *a, **k)
-
-    monkeypatch.setattr(torch.optim.Adam, "step", dying_step)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_at_optimizer_step(monkeypatch, 5):
         pretrain.pretrain_model(cfg, torch.device("cpu"))
-    monkeypatch.setattr(torch.optim.Adam, "step", real_step)
     saved = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
     assert saved["step"] == 4 and saved["seconds"] > 0
     net, resumed, report = pretrain.pretrain_model(cfg, torch.device("cpu"))
