@@ -239,7 +239,7 @@ def test_weight_average_is_the_exponential_moving_average_and_swaps_back():
     torch.testing.assert_close(ema.state_dict()["0.weight"], torch.full((2, 2), expected))
     with ema.swapped_in(net):
         torch.testing.assert_close(net[0].weight.detach(), torch.full((2, 2), expected))
-    torch.testing.assert_close(net[0].weight.detach(), torch.full((2, 2), 9.0)), "training weights back after it"
+    torch.testing.assert_close(net[0].weight.detach(), torch.full((2, 2), 9.0), msg="training weights back after it")
     resumed = WeightAverage(net, 0.75, ema.state_dict())
     torch.testing.assert_close(resumed.state_dict()["0.weight"], torch.full((2, 2), expected))
     with pytest.raises(ValueError, match="ema_decay"):

@@ -411,11 +411,11 @@ def problems(cfg: DictConfig) -> list[str]:
             if not _fits(value, tp):
                 found.append(f"{section}.{f.name}: expected {_type_name(tp)}, got {value!r}")
                 continue
-            low, choices = f.metadata.get("min"), f.metadata.get("choices")
-            if low is not None and value is not None and not isinstance(value, (list, dict)) and value < low:
+            low, below, choices = f.metadata.get("min"), f.metadata.get("below"), f.metadata.get("choices")
+            scalar = value is not None and not isinstance(value, (list, dict))
+            if scalar and low is not None and value < low:
                 found.append(f"{section}.{f.name}: must be at least {low}, got {value!r}")
-            below = f.metadata.get("below")
-            if below is not None and value is not None and not isinstance(value, (list, dict)) and value >= below:
+            if scalar and below is not None and value >= below:
                 found.append(f"{section}.{f.name}: must be below {below}, got {value!r}")
             if choices and value not in choices:
                 found.append(f"{section}.{f.name}: expected one of {', '.join(choices)}, got {value!r}")

@@ -96,8 +96,8 @@ class WeightAverage:
         if not 0.0 < decay < 1.0:
             raise ValueError(f"ema_decay must lie in (0, 1), got {decay}")
         self.decay = decay
-        self.names = [k for k, v in net.state_dict().items() if v.is_floating_point()]
         current = net.state_dict()
+        self.names = [k for k, v in current.items() if v.is_floating_point()]
         source = state if state is not None else current
         self.values = {k: source[k].detach().clone().to(current[k]) for k in self.names}
 
@@ -222,11 +222,8 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                 log.info("it %d/%d p=%.2f loss %.4f psnr %.2f", step, recipe.schedule.N, entry["p_synthetic"],
                          entry["loss"], entry["psnr"])
             if on_snapshot is not None and step in recipe.snapshots:
-                if ema is None:
+                with ema.swapped_in(net) if ema is not None else contextlib.nullcontext():
                     on_snapshot(step, seconds + time.perf_counter() - t0)
-                else:
-                    with ema.swapped_in(net):
-                        on_snapshot(step, seconds + time.perf_counter() - t0)
             if step % max(1, recipe.checkpoint_every) == 0 or step == recipe.schedule.N:
                 seconds += time.perf_counter() - t0
                 t0 = time.perf_counter()
