@@ -81,6 +81,35 @@ def test_sweep_table_orders_by_the_metrics_direction(tmp_path, metric):
     assert "lower is better" in table.note if metric == "st_lpips" else "higher is better" in table.note
 
 
+def test_sweep_table_shows_the_also_metrics_beside_the_main_one(tmp_path):
+    """`also: [landmark_nme, identity_similarity]`: each setting's mean and CI over its seeds; one never measured is
+    'missing', not a number; a malformed list is a one-line error naming the file."""
+    spec = tmp_path / "ema.yaml"
+    spec.write_text("step: finetune\nsubject: s\ninit: alpha1\nalso: [landmark_nme, identity_similarity, psnr]\n"
+                    "overrides: {finetune.ema_decay: '0.0,0.99', seed: range(3)}\n")
+    sweep = load_sweep(spec)
+    assert sweep.also == ("landmark_nme", "identity_similarity")  # the main metric is not repeated
+    folder = tmp_path / "results"
+    for p in sweep.points:
+        averaged = p.values["finetune.ema_decay"] > 0
+        fake_point(folder, p.name, 26.0 + averaged + 0.1 * p.seed, 0.25)
+        report = json.loads((folder / p.name / "eval.json").read_text())
+        report["all"]["model"].update(landmark_nme=0.07 + 0.01 * averaged + 0.001 * p.seed, identity_similarity=None)
+        (folder / p.name / "eval.json").write_text(json.dumps(report))
+    table, rows = summarise(sweep, folder)
+    by_decay = {r["finetune.ema_decay"]: r for r in rows}
+    assert by_decay[0.99]["landmark_nme"] == pytest.approx(0.081) and by_decay[0.0]["landmark_nme"] == pytest.approx(0.071)
+    assert by_decay[0.0]["landmark_nme_ci95"] == pytest.approx(4.303 * 0.001 / 3 ** 0.5, rel=1e-3)
+    assert by_decay[0.0]["identity_similarity"] == "missing" and by_decay[0.0]["identity_similarity_ci95"] is None
+    assert table.columns[-4:] == ["landmark_nme", "landmark_nme_ci95", "identity_similarity",
+                                  "identity_similarity_ci95"]
+    assert "landmark_nme, identity_similarity" in table.note and "| missing |" in table.markdown()
+    spec.write_text("step: finetune\nsubject: s\ninit: alpha1\nalso: landmark_nme\noverrides: {seed: range(2)}\n")
+    with pytest.raises(ConfigError, match="'also' must be a list of metric names") as err:
+        load_sweep(spec)
+    assert str(err.value).startswith(str(spec))
+
+
 def test_sweep_table_reads_only_the_seeds_the_workflow_ran(tmp_path):
     """workflow config sweep_seeds=2: the table step gets --seeds 2 and reads seeds 0 and 1 only (no seed-2 points)."""
     from avatarlab.evaluate.sweep_report import main

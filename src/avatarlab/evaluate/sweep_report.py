@@ -21,12 +21,23 @@ from avatarlab.workflow.sweeps import SEED_KEY, Sweep, load_sweep
 log = logging.getLogger(__name__)
 
 
-def point_scores(sweep: Sweep, report: dict) -> tuple[float, float, str, float]:
-    """(metric, gain over the best baseline, best baseline's name, its value) of one point's eval.json."""
+def point_scores(sweep: Sweep, report: dict) -> tuple[float, float, str, float, dict]:
+    """(metric, gain over the best baseline, best baseline's name, its value, the `also` metrics) of one point's
+    eval.json; an `also` metric the evaluation did not measure is None."""
     part = report["all"] if sweep.step == "finetune" else report
     gain_key = sweep.metric if sweep.metric in part["gain"] else next(iter(part["gain"]))
     g = part["gain"][gain_key]
-    return part["model"][sweep.metric], g["gain"], g["best_baseline"], g["baseline"]
+    also = {name: part["model"].get(name) for name in sweep.also}
+    return part["model"][sweep.metric], g["gain"], g["best_baseline"], g["baseline"], also
+
+
+def also_columns(sweep: Sweep, runs: list) -> dict:
+    """Each `also` metric of one setting: mean and 95 % CI over the seeds that measured it ("missing" if none)."""
+    out = {}
+    for name in sweep.also:
+        mean, ci, _ = mean_ci(s[5][name] for s in runs)
+        out.update({name: "missing" if mean is None else mean, f"{name}_ci95": ci})
+    return out
 
 
 def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
@@ -42,7 +53,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
         gain, gain_ci, _ = mean_ci(s[2] for s in runs)
         rows.append({**{k: v for k, v in setting}, "seeds": n, sweep.metric: mean, f"{sweep.metric}_ci95": ci,
                      "gain": gain, "gain_ci95": gain_ci, "best_baseline": runs[0][3], "baseline": runs[0][4],
-                     "values": [s[1] for s in runs]})
+                     **also_columns(sweep, runs), "values": [s[1] for s in runs]})
     lower = sweep.metric in LOWER_IS_BETTER
     best = (min if lower else max)(rows, key=lambda r: r[sweep.metric])
     threshold = single_run_threshold(sd)
@@ -56,6 +67,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
                                       "yes" if r["worse_than_best"] > limit else "no (within noise)")
     columns = swept + ["seeds", sweep.metric, f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline",
                        "baseline", "worse_than_best", "differs_from_best"]
+    columns += [c for name in sweep.also for c in (name, f"{name}_ci95")]
     note = (f"{sweep.description or sweep.name}. {len(sweep.points)} points ({sweep.step}); metric: test "
             f"{sweep.metric} ({'lower' if lower else 'higher'} is better), mean over seeds with its 95 % CI (Student's "
             "t); gain over the best trivial baseline on "
@@ -64,6 +76,8 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
                                                            if sd is not None else " (one seed per setting: no verdict)."))
     if threshold is not None:
         note += f" Two single runs differ beyond noise above {threshold:.2f}."
+    if sweep.also:
+        note += f" Beside it, each setting's mean and 95 % CI over seeds of: {', '.join(sweep.also)}."
     table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note)
     for r in sorted(rows, key=lambda r: tuple(str(r[k]) for k in swept)):
         table.add(**{k: (str(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()})

@@ -9,6 +9,8 @@ sweep). The overrides are expanded by Hydra's parser and basic sweeper - the gra
     pretrain: strategy, parent (the alpha model a beta strategy continues; none for alpha1/alpha2)
     overrides: {key: sweep expression}
     metric: the number the table and figure report (default psnr for avatars, psnr_head for pretrained models)
+    also: more of the evaluation's model metrics shown beside it, each as a mean and 95 % CI over seeds (e.g.
+          [landmark_nme, ssim]: what a setting that wins on the metric may cost elsewhere)
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ class Sweep:
     points: tuple[Point, ...]
     keys: tuple[str, ...]
     metric: str
+    also: tuple[str, ...] = ()
     subject: str | None = None
     init: str | None = None
     recipe: str = "base"
@@ -117,7 +120,11 @@ def load_sweep(path: str | Path, seeds: int | None = None) -> Sweep:
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
     metric = spec.get("metric") or ("psnr" if step == "finetune" else "psnr_head")
+    also = spec.get("also") or []
+    if not isinstance(also, list) or not all(isinstance(m, str) for m in also):
+        raise ConfigError(f"{path}: 'also' must be a list of metric names, not {also!r}")
     return Sweep(name=path.stem, step=step, points=tuple(points), keys=tuple(overrides), metric=metric,
+                 also=tuple(m for m in also if m != metric),
                  subject=spec.get("subject"), init=spec.get("init"), recipe=spec.get("recipe", "base"),
                  strategy=spec.get("strategy"), parent=spec.get("parent"), description=spec.get("description", ""))
 
