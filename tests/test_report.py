@@ -116,6 +116,22 @@ def test_the_tiny_sizes_substitution_states_tinys_config():
         assert part in row, part
 
 
+def test_the_weight_averaging_substitution_states_the_configured_decays():
+    """The row names tiny's decay, and paper scale keeps the dissertation's last iterate (decay 0)."""
+    from pathlib import Path
+
+    import yaml
+
+    from avatarlab.evaluate.report import SUBSTITUTIONS
+
+    scales = Path(__file__).resolve().parents[1] / "conf/scale"
+    decay = {name: yaml.safe_load((scales / f"{name}.yaml").read_text())["finetune_final_ema_decay"]
+             for name in ("smoke", "tiny", "paper")}
+    assert decay["paper"] == 0 and decay["tiny"] > 0 and decay["smoke"] == decay["tiny"]
+    row = next(ours for what, _, ours, _ in SUBSTITUTIONS if what == "avatar weights (tiny, smoke)")
+    assert f"scale.finetune_final_ema_decay = {decay['tiny']:g}" in row
+
+
 def test_the_rgb_fit_substitution_states_the_configured_jaw_limits():
     from pathlib import Path
 
