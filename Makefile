@@ -7,7 +7,7 @@ CORES ?= 2
 SCALE ?= tiny
 PORT ?= 5000
 
-.PHONY: main test test-fast lint setup system browser cluster dashboard clean-results
+.PHONY: main test test-fast lint setup system browser cluster unlock dashboard clean-results
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -59,6 +59,10 @@ lint: setup
 	$(BIN)/ruff check src tests benchmarks
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --lint >/dev/null 2>lint.log || { cat lint.log; rm -f lint.log; exit 1; }
 	@rm -f lint.log
+
+# after the whole workflow was killed (kill, power loss): Snakemake's lock on the directory stays behind
+unlock: setup
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --unlock --cores 1 --config scale=$(SCALE)
 
 dashboard: setup
 	$(BIN)/python -m avatarlab.dashboard --results results --port $(PORT)

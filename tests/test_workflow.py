@@ -8,6 +8,10 @@ import csv
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +58,32 @@ def test_dry_run_lists_the_jobs(tmp_path):
     assert planned["finetune_avatar"] == 14 + 2 + 1 and planned["finetune_interp_variant"] == 4
     # seed 1 of the final recipe (two synthetic subjects) and of the alpha1 / alpha2 avatars of synth_talk
     assert planned["finetune_avatar_seed"] == 2 + 2 and planned["evaluate_avatar"] == 17 + 4 + 4
+
+
+def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):
+    """A workflow killed as a whole (kill -9, power loss) leaves Snakemake's lock: the next run stops with a one-line
+    reason, `make unlock`'s command lifts it, and the resumed run plans the killed step again."""
+    cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+           "--cores", "1", "--config", "scale=smoke", "threads_per_job=1", "seeds=2"]
+    proc = subprocess.Popen(cmd, env=workflow_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    locks = tmp_path / ".snakemake" / "locks"
+    deadline = time.monotonic() + 120
+    while not (locks.is_dir() and any(locks.iterdir())) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    if proc.poll() is not None or not locks.is_dir():
+        pytest.fail(f"the workflow should be running and hold its lock:\n{proc.communicate()[1][-3000:]}")
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+    locked = snakemake(tmp_path, check=False)
+    assert locked.returncode != 0 and "cannot be locked" in locked.stderr
+    make_unlock = subprocess.run(["make", "-n", "-C", str(REPO), "unlock"], capture_output=True, text=True)
+    assert "snakemake --unlock" in make_unlock.stdout, make_unlock.stdout + make_unlock.stderr
+    snakemake(tmp_path, "--unlock")
+    assert not locks.is_dir() or not any(locks.iterdir())
+    resumed = jobs_planned(snakemake(tmp_path, "-n"))
+    assert resumed["pretrain_alpha"] == 2 and sum(resumed.values()) > 30
 
 
 @pytest.mark.slow
