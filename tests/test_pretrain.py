@@ -264,11 +264,11 @@ def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration()
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("decay", ["none", "cosine"])
-def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay):
+@pytest.mark.parametrize("decay, ema", [("none", 0.0), ("cosine", 0.0), ("none", 0.5)])
+def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, ema):
     from avatarlab.train import pretrain
 
-    settings = [f"pretrain.lr_decay={decay}", "pretrain.lr_final=0.05"]
+    settings = [f"pretrain.lr_decay={decay}", "pretrain.lr_final=0.05", f"pretrain.ema_decay={ema}"]
     full_net, full, _ = short_training(tmp_path, "full", *settings)
     assert [h["step"] for h in full.history] == list(range(1, 10))
     assert [h["n_synthetic"] for h in full.history][:6] == [2] * 6  # p = 1 up to M
@@ -280,6 +280,7 @@ def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay):
         pretrain.pretrain_model(cfg, torch.device("cpu"))
     saved = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
     assert saved["step"] == 4 and saved["seconds"] > 0
+    assert (saved["ema"] is not None) == (ema > 0), "the checkpoint carries the weight average when there is one"
     net, resumed, report = pretrain.pretrain_model(cfg, torch.device("cpu"))
     for p, q in zip(full_net.parameters(), net.parameters()):
         torch.testing.assert_close(p, q)

@@ -208,6 +208,7 @@ class Pretrain:
     offset_lr: float = at_least(0)
     lr_decay: str = one_of("none", "cosine")
     lr_final: float = at_least(0)
+    ema_decay: float = in_range(0, 1)
     z_aug_range: list[float] = MISSING
     checkpoint_every: int = at_least(1)
     log_every: int = at_least(1)

@@ -52,7 +52,7 @@ def recipe_of(cfg, schedule: Schedule, start: int) -> Recipe:
                   w_mask=float(m.w_mask),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(pre.checkpoint_every),
                   log_every=int(pre.log_every), amp=bool(cfg.amp), lr_decay=str(pre.lr_decay),
-                  lr_final=float(pre.lr_final))
+                  lr_final=float(pre.lr_final), ema_decay=float(pre.ema_decay))
 
 
 def pretrain_model(cfg, device):
