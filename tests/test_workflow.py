@@ -10,7 +10,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,19 +17,23 @@ import numpy as np
 import pytest
 import torch
 from helpers import REPO, SHARED_DATA, run_snakemake, workflow_env
-from helpers.workflow import jobs_planned
+from helpers.workflow import jobs_planned, snakemake_command
 from PIL import Image
 
 PRETRAINED = ["alpha1", "alpha2"] + [f"beta{i}_from_{a}" for i in range(1, 7) for a in ("alpha1", "alpha2")]
 
 
-def snakemake(workdir: Path, *args: str, check=True, **kw):
+def smoke_args(*args: str) -> list[str]:
     """Targets and options as given; `key=value` arguments join the --config entries (scale=smoke, one thread per
     step, two seeds of the seeded runs: the suite's time budget)."""
     config = [a for a in args if "=" in a and not a.startswith("-")]
     other = [a for a in args if a not in config]
-    return run_snakemake(workdir, "--cores", "2", *other, "--config", "scale=smoke", "threads_per_job=1", "seeds=2", *config,
-                         check=check, **kw)
+    return ["--cores", "2", *other, "--config", "scale=smoke", "threads_per_job=1", "seeds=2", *config]
+
+
+def snakemake(workdir: Path, *args: str, check=True, **kw):
+    """The workflow run in `workdir` with `smoke_args(*args)`."""
+    return run_snakemake(workdir, *smoke_args(*args), check=check, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -63,15 +66,17 @@ def test_dry_run_lists_the_jobs(tmp_path):
 def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):
     """A workflow killed as a whole (kill -9, power loss) leaves Snakemake's lock: the next run stops with a one-line
     reason, `make unlock`'s command lifts it, and the resumed run plans the killed step again."""
-    cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
-           "--cores", "1", "--config", "scale=smoke", "threads_per_job=1", "seeds=2"]
-    proc = subprocess.Popen(cmd, env=workflow_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(snakemake_command(tmp_path, *smoke_args()), env=workflow_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     locks = tmp_path / ".snakemake" / "locks"
+
+    def locked_by_the_run() -> bool:
+        return locks.is_dir() and any(locks.iterdir())
+
     deadline = time.monotonic() + 120
-    while not (locks.is_dir() and any(locks.iterdir())) and time.monotonic() < deadline and proc.poll() is None:
+    while not locked_by_the_run() and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.2)
-    if proc.poll() is not None or not locks.is_dir():
+    if proc.poll() is not None or not locked_by_the_run():
         pytest.fail(f"the workflow should be running and hold its lock:\n{proc.communicate()[1][-3000:]}")
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -81,7 +86,7 @@ def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):
     make_unlock = subprocess.run(["make", "-n", "-C", str(REPO), "unlock"], capture_output=True, text=True)
     assert "snakemake --unlock" in make_unlock.stdout, make_unlock.stdout + make_unlock.stderr
     snakemake(tmp_path, "--unlock")
-    assert not locks.is_dir() or not any(locks.iterdir())
+    assert not locked_by_the_run()
     resumed = jobs_planned(snakemake(tmp_path, "-n"))
     assert resumed["pretrain_alpha"] == 2 and sum(resumed.values()) > 30
 

@@ -32,12 +32,17 @@ def workflow_env(tracking_server: bool = False, **extra: str) -> dict:
     return env
 
 
+def snakemake_command(workdir: Path, *args: str, snakefile: Path | None = None) -> list[str]:
+    """The command line that runs the workflow (this repository's, or the Snakefile given) in `workdir`."""
+    return [str(Path(sys.executable).parent / "snakemake"), "-s", str(snakefile or REPO / "Snakefile"),
+            "--directory", str(workdir), *args]
+
+
 def run_snakemake(workdir: Path, *args: str, env: dict | None = None, timeout: int = 2400, check: bool = True,
                   snakefile: Path | None = None) -> subprocess.CompletedProcess:
     """The workflow (this repository's, or the Snakefile given) run in `workdir`; a failure shows its output's end."""
-    cmd = [str(Path(sys.executable).parent / "snakemake"), "-s", str(snakefile or REPO / "Snakefile"),
-           "--directory", str(workdir), *args]
-    proc = subprocess.run(cmd, env=env or workflow_env(), capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(snakemake_command(workdir, *args, snakefile=snakefile), env=env or workflow_env(),
+                          capture_output=True, text=True, timeout=timeout)
     if check and proc.returncode != 0:
         pytest.fail(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     return proc
