@@ -2,6 +2,7 @@
 
     python benchmarks/bench_pretrain.py [--scale tiny] [--iterations 20] [--threads 2] [--amp | --no-amp]
     python benchmarks/bench_pretrain.py --processes 2 --threads 1   # the workflow's way: two one-thread jobs at once
+    python benchmarks/bench_pretrain.py --mlp-precision bfloat16     # the CNeRF MLP alone in bfloat16
 
 Prints, at the scale's sizes and in one process:
 - samples/s of a training step as pretraining runs it (alpha: every sample synthetic, so the head-model renders
@@ -55,7 +56,7 @@ def training_setup(cfg, batch: int) -> SimpleNamespace:
     from avatarlab.headmodel import load_head_model
     from avatarlab.model.head_nerf import build_model
     from avatarlab.model.losses import RandomConvFeatures
-    from avatarlab.train.loop import Recipe, make_optimizer, offset_table, train_step
+    from avatarlab.train.loop import MLP_PRECISIONS, Recipe, make_optimizer, offset_table, train_step
 
     head = load_head_model(cfg.head_model)
     n = 8
@@ -68,6 +69,7 @@ def training_setup(cfg, batch: int) -> SimpleNamespace:
     gen = SyntheticGenerator(head, real.params, cfg.synthetic, size, tuple(cfg.render.background), device)
     torch.manual_seed(0)
     net = build_model(cfg, head)
+    net.nerf.compute_dtype = MLP_PRECISIONS[str(cfg.model.mlp_precision)]  # as the training loop sets it
     schedule = Schedule(M=10**9, N=10**9, p_min=1.0, p_max=1.0, mouth_from=None)
     recipe = Recipe(schedule=schedule, start=0, batch=batch, lr=1e-3, offset_lr=1e-3, amp=bool(cfg.amp))
     offsets = offset_table(n, {"pose": 12}, (), device)
@@ -112,6 +114,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
                         help="bfloat16 autocast (default: the config's amp)")
+    parser.add_argument("--mlp-precision", choices=("float32", "bfloat16"), default=None,
+                        help="the CNeRF MLP's training precision (default: the config's model.mlp_precision)")
     parser.add_argument("--processes", type=int, default=1, help="measure the training step in N processes at once")
     parser.add_argument("--step-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -122,6 +126,7 @@ def main() -> None:
     from helpers import compose_config
 
     overrides = [f"scale={args.scale}"] + ([f"amp={str(args.amp).lower()}"] if args.amp is not None else [])
+    overrides += [f"model.mlp_precision={args.mlp_precision}"] if args.mlp_precision else []
     cfg = compose_config(overrides)
     m, batch = cfg.model, int(cfg.pretrain.batch)
     run = training_setup(cfg, batch)
@@ -138,12 +143,13 @@ def main() -> None:
     print(f"scale {args.scale}: batch {batch}, image {m.image_size}x{m.image_size}, feature map "
           f"{m.feature_size}x{m.feature_size}, {m.samples} samples/ray, MLP {m.depth}x{m.width}, renderer "
           f"{m.renderer} (min {m.renderer_min_channels} channels); {args.threads} threads; "
-          f"{'bfloat16 autocast' if cfg.amp else 'float32'}")
+          f"{'bfloat16 autocast' if cfg.amp else 'float32'}, CNeRF MLP in {cfg.model.mlp_precision}")
     print(f"training step: {step_time * 1000:.0f} ms, {batch / step_time:.1f} samples/s (synthetic rendering "
           f"included; without the background batch thread: {serial * 1000:.0f} ms, {batch / serial:.1f} samples/s)")
     print(f"CNeRF MLP forward+backward over one batch's points: {gflop:.2f} GFLOP at {gflops:.1f} GFLOPS = "
           f"{100 * gflops / sgemm:.0f} % of sgemm ({sgemm:.1f} GFLOPS, 2048x2048 float32, same run)")
     net = run.net.eval()
+    net.nerf.compute_dtype = None  # renders as evaluation renders: float32
     from avatarlab.model.head_nerf import assemble_codes
 
     for res in sorted({int(m.image_size), 128}):
@@ -161,6 +167,7 @@ def concurrent_training(args) -> None:
     command = [sys.executable, __file__, "--scale", args.scale, "--iterations", str(args.iterations),
                "--threads", str(args.threads), "--step-only"]
     command += [] if args.amp is None else ["--amp" if args.amp else "--no-amp"]
+    command += ["--mlp-precision", args.mlp_precision] if args.mlp_precision else []
     processes = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True) for _ in range(args.processes)]
     rates = []
     for process in processes:

@@ -173,6 +173,22 @@ def test_per_sample_projection_equals_the_concatenated_layers():
     torch.testing.assert_close(split_f, dense_f.reshape(-1, 4), rtol=1e-5, atol=1e-6)
 
 
+def test_the_mlp_alone_computes_in_bfloat16_when_asked():
+    """model.mlp_precision=bfloat16: the MLP's products run in bfloat16 (its outputs differ from float32 by bfloat16's
+    rounding, not more) and come back float32; unset again, it is float32 to the bit."""
+    nerf = small_nerf()
+    pts, idx = torch.rand(40, 3) * 0.3 - 0.15, torch.arange(2).repeat_interleave(20)
+    geo, app = torch.randn(2, 17), torch.randn(2, 29)
+    s32, f32 = nerf(pts, idx, geo, app)
+    nerf.compute_dtype = torch.bfloat16
+    s16, f16 = nerf(pts, idx, geo, app)
+    assert s16.dtype == f16.dtype == torch.float32
+    assert not torch.equal(f16, f32), "the products ran in bfloat16"
+    torch.testing.assert_close(f16, f32, rtol=0.05, atol=0.05)
+    nerf.compute_dtype = None
+    assert torch.equal(nerf(pts, idx, geo, app)[1], f32)
+
+
 def test_rays_are_sampled_inside_the_heads_bounding_sphere():
     cam = orbit_camera(1.0, 0.0, 0.0, image_size=(64, 64))
     origins, dirs = camera_rays(cam, (8, 8))
@@ -371,6 +387,18 @@ def test_mixed_precision_training_runs_and_stays_close(tmp_path):
     assert mixed.history[0]["loss"] == pytest.approx(full.history[0]["loss"], rel=0.05)
     assert mixed.history[-1]["psnr"] == pytest.approx(full.history[-1]["psnr"], abs=1.0)
     assert next(net.parameters()).dtype == torch.float32  # master weights stay float32
+
+
+@pytest.mark.slow
+def test_a_bfloat16_mlp_trains_like_float32_and_leaves_the_model_float32(tmp_path):
+    """model.mlp_precision=bfloat16 (the CNeRF MLP alone under bfloat16 autocast): a different but close run, and the
+    trained network renders in float32 afterwards (evaluation does not inherit the training precision)."""
+    full_net, full, _ = short_training(tmp_path, "fp32")
+    net, mixed, _ = short_training(tmp_path, "mlp", "model.mlp_precision=bfloat16")
+    assert [h["loss"] for h in mixed.history] != [h["loss"] for h in full.history], "the setting reached the MLP"
+    assert mixed.history[0]["loss"] == pytest.approx(full.history[0]["loss"], rel=0.05)
+    assert mixed.history[-1]["psnr"] == pytest.approx(full.history[-1]["psnr"], abs=1.0)
+    assert net.nerf.compute_dtype is None and next(net.parameters()).dtype == torch.float32
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")

@@ -175,6 +175,7 @@ class Model:
     samples: int = at_least(2)
     density_scale: float = at_least(0.001)
     renderer_min_channels: int = at_least(1)
+    mlp_precision: str = one_of("float32", "bfloat16")
     w_mse: float = at_least(0)
     w_perceptual: float = at_least(0)
     w_mask: float = at_least(0)

@@ -76,11 +76,22 @@ class CNeRF(nn.Module):
                                         nn.ReLU(inplace=True), nn.Linear(cfg.width // 2, cfg.feature_channels))
         self.register_buffer("bound_center", torch.tensor(cfg.bound_center, dtype=torch.float32))
         self.register_buffer("bound_radius", torch.tensor(float(cfg.bound_radius)))
+        # None: the MLP computes in the surrounding precision; torch.bfloat16: its matmuls under bfloat16 autocast,
+        # outputs float32 (`model.mlp_precision`; set by the training loop for training only, not saved)
+        self.compute_dtype: torch.dtype | None = None
 
     def forward(self, points: torch.Tensor, sample_of_point: torch.Tensor, geometry_code: torch.Tensor,
                 appearance_code: torch.Tensor):
         """points (N, 3) world; sample_of_point (N,) long, the batch sample each point belongs to;
         geometry_code (B, S+12+E); appearance_code (B, T+27) -> sigma (N,), features (N, C)."""
+        kind = points.device.type
+        if self.compute_dtype is None or torch.is_autocast_enabled(kind):
+            return self._forward(points, sample_of_point, geometry_code, appearance_code)
+        with torch.autocast(kind, dtype=self.compute_dtype):
+            sigma, v = self._forward(points, sample_of_point, geometry_code, appearance_code)
+        return sigma.float(), v.float()
+
+    def _forward(self, points, sample_of_point, geometry_code, appearance_code):
         pe = positional_encoding(points * self.cfg.coordinate_scale, self.cfg.frequencies)
         h = F.relu(_linear_split(self.layers[0], pe, geometry_code, sample_of_point, self.pe_dim))
         for i in range(1, len(self.layers)):

@@ -50,6 +50,7 @@ class Recipe:
     checkpoint_every: int = 25
     log_every: int = 25
     amp: bool = False
+    mlp_precision: str = "float32"  # float32 | bfloat16: the CNeRF MLP alone under bfloat16 autocast (model section)
     snapshots: tuple[int, ...] = ()  # iterations after which the weights are handed to `on_snapshot`
     lr_decay: str = "none"  # none (constant rates) | cosine (every rate falls along a cosine from `start` to N)
     lr_final: float = 0.0  # cosine: the rates at N, as a fraction of the initial ones
@@ -58,6 +59,7 @@ class Recipe:
 
 
 LR_DECAYS = ("none", "cosine")
+MLP_PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
 
 
 def lr_factor(recipe: Recipe, step: int) -> float:
@@ -207,6 +209,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
     ema = WeightAverage(net, recipe.ema_decay, (state or {}).get("ema")) if recipe.ema_decay > 0 else None
     stream = BatchStream(source, step, recipe.schedule.N, g)
     net.train()
+    net.nerf.compute_dtype = MLP_PRECISIONS[recipe.mlp_precision]
     try:
         t0 = time.perf_counter()
         while step < recipe.schedule.N:
@@ -223,7 +226,9 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                          entry["loss"], entry["psnr"])
             if on_snapshot is not None and step in recipe.snapshots:
                 with ema.swapped_in(net) if ema is not None else contextlib.nullcontext():
+                    net.nerf.compute_dtype = None  # a snapshot is scored as the evaluation scores the result
                     on_snapshot(step, seconds + time.perf_counter() - t0)
+                    net.nerf.compute_dtype = MLP_PRECISIONS[recipe.mlp_precision]
             if step % max(1, recipe.checkpoint_every) == 0 or step == recipe.schedule.N:
                 seconds += time.perf_counter() - t0
                 t0 = time.perf_counter()
@@ -237,6 +242,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                 reported = len(history)
     finally:
         stream.close()
+        net.nerf.compute_dtype = None
     if ema is not None:
         ema.copy_to(net)
     net.eval()
