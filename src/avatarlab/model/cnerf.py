@@ -14,6 +14,7 @@ Two things make it cheap without changing the model:
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -90,6 +91,15 @@ class CNeRF(nn.Module):
         with torch.autocast(kind, dtype=self.compute_dtype):
             sigma, v = self._forward(points, sample_of_point, geometry_code, appearance_code)
         return sigma.float(), v.float()
+
+    @contextlib.contextmanager
+    def computing_in(self, dtype: torch.dtype | None):
+        """`compute_dtype` set to `dtype` inside the block, and back to what it was after it."""
+        before, self.compute_dtype = self.compute_dtype, dtype
+        try:
+            yield
+        finally:
+            self.compute_dtype = before
 
     def _forward(self, points, sample_of_point, geometry_code, appearance_code):
         pe = positional_encoding(points * self.cfg.coordinate_scale, self.cfg.frequencies)

@@ -52,7 +52,8 @@ def recipe_of(cfg, start: int) -> Recipe:
                   freeze_layers=int(ft.freeze_layers), w_mse=float(m.w_mse), w_perceptual=float(m.w_perceptual),
                   w_mask=float(m.w_mask),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
-                  log_every=int(ft.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision), snapshots=snapshots, lr_decay=str(ft.lr_decay),
+                  log_every=int(ft.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision),
+                  snapshots=snapshots, lr_decay=str(ft.lr_decay),
                   lr_final=float(ft.lr_final), ema_decay=float(ft.ema_decay))
 
 

@@ -225,10 +225,10 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                 log.info("it %d/%d p=%.2f loss %.4f psnr %.2f", step, recipe.schedule.N, entry["p_synthetic"],
                          entry["loss"], entry["psnr"])
             if on_snapshot is not None and step in recipe.snapshots:
-                with ema.swapped_in(net) if ema is not None else contextlib.nullcontext():
-                    net.nerf.compute_dtype = None  # a snapshot is scored as the evaluation scores the result
+                # a snapshot is scored as the evaluation scores the result: in float32
+                with ema.swapped_in(net) if ema is not None else contextlib.nullcontext(), \
+                        net.nerf.computing_in(None):
                     on_snapshot(step, seconds + time.perf_counter() - t0)
-                    net.nerf.compute_dtype = MLP_PRECISIONS[recipe.mlp_precision]
             if step % max(1, recipe.checkpoint_every) == 0 or step == recipe.schedule.N:
                 seconds += time.perf_counter() - t0
                 t0 = time.perf_counter()

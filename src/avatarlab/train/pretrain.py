@@ -51,8 +51,8 @@ def recipe_of(cfg, schedule: Schedule, start: int) -> Recipe:
                   z_aug_range=tuple(pre.z_aug_range), w_mse=float(m.w_mse), w_perceptual=float(m.w_perceptual),
                   w_mask=float(m.w_mask),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(pre.checkpoint_every),
-                  log_every=int(pre.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision), lr_decay=str(pre.lr_decay),
-                  lr_final=float(pre.lr_final), ema_decay=float(pre.ema_decay))
+                  log_every=int(pre.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision),
+                  lr_decay=str(pre.lr_decay), lr_final=float(pre.lr_final), ema_decay=float(pre.ema_decay))
 
 
 def pretrain_model(cfg, device):
