@@ -81,8 +81,8 @@ def test_interpolation_trains_in_mixed_precision_like_float32(tmp_path):
 
     frames = torch.rand(9, 3, 16, 16, generator=torch.Generator().manual_seed(0))
     triplets = training_triplets(np.arange(0, 9, 2))
-    _, full = train(frames, triplets, interp_config(), tmp_path / "fp32.pt")
-    model, mixed = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt")
+    _, full, _ = train(frames, triplets, interp_config(), tmp_path / "fp32.pt")
+    model, mixed, _ = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt")
     assert len(mixed) == 6 and np.isfinite(mixed).all()
     assert mixed != full  # bfloat16 really ran
     np.testing.assert_allclose(mixed, full, rtol=0.05)
@@ -129,11 +129,11 @@ def test_fits_renders_and_networks_on_cuda_match_the_cpu(tmp_path, head_model):
 
     frames = torch.rand(9, 3, 16, 16, generator=torch.Generator().manual_seed(0))
     triplets = training_triplets(np.arange(0, 9, 2))
-    _, cpu_losses = train(frames, triplets, interp_config(), tmp_path / "cpu.pt", torch.device("cpu"))
-    model, gpu_losses = train(frames, triplets, interp_config(), tmp_path / "gpu.pt", torch.device("cuda"))
+    _, cpu_losses, _ = train(frames, triplets, interp_config(), tmp_path / "cpu.pt", torch.device("cpu"))
+    model, gpu_losses, _ = train(frames, triplets, interp_config(), tmp_path / "gpu.pt", torch.device("cuda"))
     assert next(model.parameters()).device.type == "cuda"
     np.testing.assert_allclose(gpu_losses, cpu_losses, rtol=1e-3)
-    _, amp_losses = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt", torch.device("cuda"))
+    _, amp_losses, _ = train(frames, triplets, interp_config(amp=True), tmp_path / "amp.pt", torch.device("cuda"))
     np.testing.assert_allclose(amp_losses, cpu_losses, rtol=0.05)
 
 

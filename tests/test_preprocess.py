@@ -317,9 +317,10 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     from avatarlab.preprocess.interp.network import load_interpolator, save_interpolator
 
     a, b = fake_video_subject(tmp_path / "a", count=9, size=32), fake_video_subject(tmp_path / "b", count=12, size=32)
-    frames, triplets, counts = pretrain.gather([a, b], [1, 2])
-    assert frames.shape == (21, 3, 32, 32) and counts == {"a": {"frames": 9, "triplets": 4},
-                                                          "b": {"frames": 12, "triplets": 6}}
+    frames, triplets, counts, validation = pretrain.gather([a, b], [1, 2])
+    assert frames.shape == (21, 3, 32, 32) and counts == {"a": {"frames": 9, "triplets": 4, "validation": 0},
+                                                          "b": {"frames": 12, "triplets": 6, "validation": 0}}
+    assert validation.shape == (0, 4)
     local = np.where(triplets >= 9, triplets - 9, triplets)
     assert (local % 2 == 0).all(), "only frames variant (b) keeps: the held-out (odd) frames are never trained on"
     assert ((triplets >= 9).all(1) | (triplets < 9).all(1)).all(), "a triplet never mixes two videos"
@@ -329,7 +330,13 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
                               "interp.strides=[1,2]"])
     pretrain.train_interpolator(cfg, torch.device("cpu"))
     report = json.loads((tmp_path / "out" / "train.json").read_text())
-    assert report["iterations"] == 3 and report["triplets"] == 10 and not (tmp_path / "out" / "checkpoint.pt").exists()
+    # validation_every=5: each video's third triplet ([4, 6, 8]) chooses the snapshot, and no training triplet keeps
+    # its middle frame as a target (a: 4 - 1 = 3; b: 6 - 1 - [2, 6, 10] = 4)
+    assert report["subjects"]["a"] == {"frames": 9, "triplets": 3, "validation": 1}
+    assert report["subjects"]["b"] == {"frames": 12, "triplets": 4, "validation": 1}
+    assert report["iterations"] == 3 and report["triplets"] == 7 and not (tmp_path / "out" / "checkpoint.pt").exists()
+    assert [step for step, _ in report["validation_psnr_curve"]] == [0, 3]  # before training, at the checkpoint
+    assert report["chosen_validation_psnr"] == max(v for _, v in report["validation_psnr_curve"])
     assert load_interpolator(tmp_path / "out" / "model.pt").width == 8
     net = XVFILite(width=8, scales=2)
     save_interpolator(tmp_path / "net.pt", net, 3)
@@ -341,25 +348,68 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
         load_interpolator(tmp_path / "bad.pt")
 
 
+def test_interpolation_never_spans_a_cut_between_two_clips(tmp_path):
+    """A subject of several recordings: no training triplet and no held-out frame has neighbours from two clips (a
+    cut has no motion to interpolate), and the experiment's report scores only the frames inside one clip."""
+    from helpers import fake_video_subject
+
+    from avatarlab.preprocess.interp import pretrain
+    from avatarlab.preprocess.interp.training import split_variants, training_triplets
+
+    clips = np.array([0] * 5 + [1] * 6)  # frames 0-4 one recording, 5-10 another
+    kept, held = split_variants(11, clips)
+    assert kept.tolist() == [0, 2, 4, 6, 8, 10] and held.tolist() == [1, 3, 7, 9]  # not 5: frames 4 and 6 straddle
+    assert split_variants(11)[1].tolist() == [1, 3, 5, 7, 9]
+    assert training_triplets(kept, (1, 2), clips).tolist() == [[0, 2, 4], [6, 8, 10]]
+    assert len(training_triplets(kept, (1, 2))) == 6
+    folder = fake_video_subject(tmp_path / "two_clips", count=11, size=32, clips=clips.tolist())
+    _, triplets, counts, _ = pretrain.gather([folder], [1, 2])
+    assert triplets.tolist() == [[0, 2, 4], [6, 8, 10]] and counts["two_clips"]["triplets"] == 2
+
+
+def test_the_interpolators_paired_gain_is_a_gain_only_beyond_its_ci():
+    from avatarlab.preprocess.interp.run import frame_psnr, paired_gain
+
+    target = torch.full((3, 3, 4, 4), 0.5)
+    pred = target.clone()
+    pred[0] += 0.1  # MSE 0.01: 20 dB
+    pred[1] += 0.01  # 40 dB
+    pred[2] += 0.001  # 60 dB
+    np.testing.assert_allclose(frame_psnr(pred, target), [20, 40, 60], atol=1e-3)
+    rng = np.random.default_rng(0)
+    base = rng.normal(30, 2, 40)
+    better = paired_gain(base + 0.5 + rng.normal(0, 0.1, 40), base)
+    assert better["verdict"] == "better" and better["wins"] >= 38 and abs(better["mean_db"] - 0.5) < 0.05
+    assert 0 < better["ci95_db"] < 0.1
+    noisy = paired_gain(base + rng.normal(0, 1.0, 40), base)
+    assert noisy["verdict"] == "within the frames' spread" and noisy["ci95_db"] > abs(noisy["mean_db"])
+    assert paired_gain(base - 1, base)["verdict"] == "worse"
+
+
 def test_interpolation_training_resumes_to_the_same_result(tmp_path):
     from omegaconf import OmegaConf
 
-    from avatarlab.preprocess.interp.training import train, training_triplets
+    from avatarlab.preprocess.interp.training import train, training_triplets, validation_psnr
 
-    cfg = interp_config()
+    cfg = OmegaConf.merge(interp_config(), {"interp": {"checkpoint_every": 1, "lr": 3e-2}})
     frames = torch.rand(9, 3, 16, 16)
     triplets = training_triplets(np.arange(0, 9, 2))
-    full, _ = train(frames, triplets, cfg, tmp_path / "full.pt")
+    held = triplets[1:2]  # scores the snapshots (a test of the bookkeeping, not of generalisation)
+    full, _, chosen = train(frames, triplets, cfg, tmp_path / "full.pt", validation=held)
     # "killed" after 3 steps: a checkpoint at step 3 exists; the rerun resumes from it
     cfg_short = OmegaConf.merge(cfg, {"interp": {"iterations": 3}})
-    train(frames, triplets, cfg_short, tmp_path / "resumed.pt")
+    train(frames, triplets, cfg_short, tmp_path / "resumed.pt", validation=held)
     state = torch.load(tmp_path / "resumed.pt", weights_only=True)
     state["fingerprint"] = state["fingerprint"].replace("iterations: 3", "iterations: 6")
     torch.save(state, tmp_path / "resumed.pt")
-    resumed, losses = train(frames, triplets, cfg, tmp_path / "resumed.pt")
-    assert len(losses) == 6
+    resumed, losses, again = train(frames, triplets, cfg, tmp_path / "resumed.pt", validation=held)
+    assert len(losses) == 6 and again == chosen
     for p, q in zip(full.parameters(), resumed.parameters()):
         torch.testing.assert_close(p, q)
+    assert [step for step, _ in chosen["curve"]] == list(range(7))
+    assert chosen["best_psnr"] == max(v for _, v in chosen["curve"])
+    assert len({round(v, 6) for _, v in chosen["curve"]}) > 1, "training moved the network"
+    assert validation_psnr(full, frames, held, torch.device("cpu")) == pytest.approx(chosen["best_psnr"], abs=1e-4)
 
 
 def _rgbd_truth(head_model: HeadModel, seed: int = 3) -> dict:

@@ -270,6 +270,9 @@ def test_report(smoke_run):
     with open(report / "tables/pretraining.csv") as f:
         table = list(csv.DictReader(f))
     assert {"psnr_head", "mean_colour_psnr_head", "nearest_psnr_head", "gain"} <= set(table[0])
+    with open(report / "tables/preprocessing.csv") as f:
+        interp_rows = [r for r in csv.DictReader(f) if r["interp_xvfi_psnr"] not in ("", "missing")]
+    assert interp_rows and all(float(r["interp_gain_vs_crossfade_ci95"]) > 0 for r in interp_rows)
     with open(report / "tables/renderer_experiment.csv") as f:
         renderers = list(csv.DictReader(f))
     assert all(float(r["eval_st_lpips"]) >= 0 and float(r["eval_best_baseline_st_lpips"]) >= 0 for r in renderers)
@@ -437,6 +440,11 @@ def check_subject(folder: Path, max_nme: float) -> None:
     for method in ("xvfi", "farneback", "cross_fade"):
         assert interp[method]["psnr"] > 22 and interp[method]["ssim"] > 0.8  # head turns: ~25.6 dB at smoke
         assert 0 <= interp[method]["st_lpips"] < 0.5  # ST-LPIPS beside PSNR for every method
+    for baseline in ("farneback", "cross_fade"):  # the per-frame paired gain, with its CI and verdict
+        gain = interp["paired_psnr_gain"][baseline]
+        assert gain["frames"] == 5 and 0 <= gain["wins"] <= 5 and gain["ci95_db"] > 0
+        assert gain["verdict"] in ("better", "worse", "within the frames' spread")
+        assert (gain["verdict"] == "better") == (gain["mean_db"] > gain["ci95_db"])
     with np.load(folder / "interpolated.npz") as inter:
         assert inter["frames"].shape == (5, 128, 128, 3) and list(inter["indices"]) == [1, 3, 5, 7, 9]
 

@@ -146,6 +146,7 @@ class Interp:
     batch: int = at_least(1)
     iterations: int = at_least(0)
     checkpoint_every: int = at_least(1)
+    validation_every: int = at_least(0)
     strides: list[int] = MISSING
     subject_dirs: list[str] = MISSING
     out_dir: str = MISSING

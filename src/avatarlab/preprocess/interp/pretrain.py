@@ -21,27 +21,31 @@ from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import write_json
 from avatarlab.preprocess.interp.network import save_interpolator
-from avatarlab.preprocess.interp.training import split_variants, to_tensor, train, training_triplets
+from avatarlab.preprocess.interp.training import split_variants, to_tensor, train, training_triplets, validation_split
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
 
 
-def gather(subject_dirs, strides) -> tuple[torch.Tensor, np.ndarray, dict]:
-    """Every subject's frames in one tensor (all crops have the scale's size) and the triplets into it."""
-    frames, triplets, counts, offset = [], [], {}, 0
+def gather(subject_dirs, strides, validation_every: int = 0) -> tuple[torch.Tensor, np.ndarray, dict, np.ndarray]:
+    """Every subject's frames in one tensor (all crops have the scale's size), the training triplets into it and the
+    validation triplets (every `validation_every`-th of each subject's, 0: none; (M, 4): the triplet and the index
+    of its subject) that choose the snapshot."""
+    frames, triplets, validation, counts, offset = [], [], [], {}, 0
     for folder in subject_dirs:
-        images = to_tensor(SubjectDir(folder).frames())
-        kept, _ = split_variants(len(images))
-        found = training_triplets(kept, strides)
+        subject = SubjectDir(folder)
+        images, clips = to_tensor(subject.frames()), subject.frame_clips()
+        kept, _ = split_variants(len(images), clips)
+        found, held = validation_split(training_triplets(kept, strides, clips), validation_every)
         frames.append(images)
         triplets.append(found + offset)
-        counts[Path(folder).name] = {"frames": len(images), "triplets": len(found)}
+        validation.append(np.concatenate([held + offset, np.full((len(held), 1), len(counts))], 1))
+        counts[Path(folder).name] = {"frames": len(images), "triplets": len(found), "validation": len(held)}
         offset += len(images)
     sizes = {tuple(f.shape[1:]) for f in frames}
     if len(sizes) > 1:
         raise ValueError(f"interp.subject_dirs: the subjects' frames differ in size {sorted(sizes)}")
-    return torch.cat(frames), np.concatenate(triplets), counts
+    return torch.cat(frames), np.concatenate(triplets), counts, np.concatenate(validation)
 
 
 def train_interpolator(cfg, device) -> dict:
@@ -50,15 +54,18 @@ def train_interpolator(cfg, device) -> dict:
     out_dir = Path(ip.out_dir)
     if not ip.subject_dirs:
         raise ValueError("interp.subject_dirs: no subject to learn interpolation from")
-    frames, triplets, counts = gather(list(ip.subject_dirs), list(ip.strides))
+    frames, triplets, counts, validation = gather(list(ip.subject_dirs), list(ip.strides), int(ip.validation_every))
     if len(triplets) == 0:
         raise ValueError(f"interp.subject_dirs: too few frames for a triplet at strides {list(ip.strides)}")
     start = time.perf_counter()
     data = {f"frames_{k}": Path(d) / "frames.json" for k, d in enumerate(ip.subject_dirs)}
-    model, losses = train(frames, triplets, cfg, out_dir / "checkpoint.pt", device, data=data)
-    report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets), "iterations": len(losses),
+    model, losses, chosen = train(frames, triplets, cfg, out_dir / "checkpoint.pt", device, data=data,
+                                  validation=validation[:, :3], validation_groups=validation[:, 3])
+    report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets),
+              "validation_triplets": len(validation), "iterations": len(losses),
               "train_seconds": time.perf_counter() - start, "final_train_l1": float(np.mean(losses[-20:])),
-              "first_train_l1": float(np.mean(losses[:20]))}
+              "first_train_l1": float(np.mean(losses[:20])), "validation_psnr_curve": chosen["curve"],
+              "chosen_step": chosen["best_step"], "chosen_validation_psnr": chosen["best_psnr"]}
     save_interpolator(out_dir / "model.pt", model, len(losses))
     write_json(out_dir / "train.json", report)
     (out_dir / "checkpoint.pt").unlink(missing_ok=True)  # finished: nothing a later run could mistake for its own
@@ -71,6 +78,11 @@ def main(cfg, device) -> None:
     log.info("frame interpolator: %d triplets of %d subjects (strides %s), %d iterations in %.0f s, train L1 "
              "%.4f -> %.4f", report["triplets"], len(report["subjects"]), report["strides"], report["iterations"],
              report["train_seconds"], report["first_train_l1"], report["final_train_l1"])
+    if report["chosen_step"] is not None:
+        curve = dict((int(k), v) for k, v in report["validation_psnr_curve"])
+        log.info("kept the snapshot of step %d: %.2f dB on %d validation triplets (step 0, the untrained blend of "
+                 "its starting flows: %.2f dB; the last step: %.2f dB)", report["chosen_step"],
+                 report["chosen_validation_psnr"], report["validation_triplets"], curve[0], curve[max(curve)])
 
 
 if __name__ == "__main__":

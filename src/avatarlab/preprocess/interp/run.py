@@ -16,6 +16,7 @@ from pathlib import Path
 import kornia
 import numpy as np
 import torch
+from scipy import stats
 
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
@@ -36,14 +37,35 @@ def quality(pred: torch.Tensor, target: torch.Tensor, st_lpips=None) -> dict[str
             "st_lpips": st_lpips(pred, target) if st_lpips is not None else None}
 
 
+def frame_psnr(pred: torch.Tensor, target: torch.Tensor) -> np.ndarray:
+    """(N,) the PSNR of each frame."""
+    mse = ((pred.float() - target.float()) ** 2).flatten(1).mean(1).clamp_min(1e-12)
+    return (10 * torch.log10(1 / mse)).numpy()
+
+
+def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
+    """The model's per-frame PSNR gain over a baseline on the same held-out frames: mean, 95 % CI half-width (Student's
+    t over frames), frames won, and whether the CI excludes zero (a gain, a loss, or within the frames' spread)."""
+    d = np.asarray(model, float) - np.asarray(baseline, float)
+    if len(d) < 2:
+        return {"frames": len(d), "mean_db": float(d.mean()) if len(d) else None, "ci95_db": None,
+                "wins": int((d > 0).sum()), "verdict": "too few frames for a CI"}
+    low, high = stats.ttest_1samp(d, 0.0).confidence_interval(0.95)
+    verdict = "better" if low > 0 else "worse" if high < 0 else "within the frames' spread"
+    return {"frames": len(d), "mean_db": float(d.mean()), "ci95_db": float((high - low) / 2), "wins": int((d > 0).sum()),
+            "verdict": verdict}
+
+
 @entry_point(READS)
 def main(cfg, device) -> None:
     subject_dir = Path(cfg.preprocess.subject_dir)
-    frames_np = SubjectDir(subject_dir).frames()
+    subject = SubjectDir(subject_dir)
+    frames_np = subject.frames()
     frames = to_tensor(frames_np)
-    kept, held = split_variants(len(frames))
+    kept, held = split_variants(len(frames), subject.frame_clips())
     if len(held) == 0:
-        raise ValueError(f"{subject_dir}: {len(frames)} frames are too few to hold any frame out")
+        raise ValueError(f"{subject.frames_json}: {len(frames)} frames are too few to hold any frame out between two "
+                         "frames of one clip")
     model = load_interpolator(cfg.interp.model, device)
     start = time.perf_counter()
     with torch.no_grad():
@@ -58,6 +80,8 @@ def main(cfg, device) -> None:
               "seconds_per_frame": seconds / len(held),
               "xvfi": quality(xvfi, target, perceptual), "farneback": quality(flow, target, perceptual),
               "cross_fade": quality(fade, target, perceptual),
+              "paired_psnr_gain": {name: paired_gain(frame_psnr(xvfi, target), frame_psnr(pred, target))
+                                   for name, pred in (("farneback", flow), ("cross_fade", fade))},
               "variants": {"a": len(frames), "b": len(kept), "c": len(kept) + len(held)}}
     out_u8 = (xvfi.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
     with atomic_path(subject_dir / "interpolated.npz") as tmp:
@@ -71,6 +95,10 @@ def main(cfg, device) -> None:
              "cross-fade %.2f / %.4f (the shared network %s)", len(held), report["xvfi"]["psnr"],
              report["xvfi"]["ssim"], report["farneback"]["psnr"], report["farneback"]["ssim"],
              report["cross_fade"]["psnr"], report["cross_fade"]["ssim"], cfg.interp.model)
+    for name, gain in report["paired_psnr_gain"].items():
+        log.info("XVFI-style over %s per frame: %+.2f dB +- %s, %d of %d frames won: %s", name, gain["mean_db"],
+                 "n/a" if gain["ci95_db"] is None else f"{gain['ci95_db']:.2f}", gain["wins"], gain["frames"],
+                 gain["verdict"])
 
 
 if __name__ == "__main__":
