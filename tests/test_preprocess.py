@@ -325,6 +325,11 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert (local % 2 == 0).all(), "only frames variant (b) keeps: the held-out (odd) frames are never trained on"
     assert ((triplets >= 9).all(1) | (triplets < 9).all(1)).all(), "a triplet never mixes two videos"
     assert sorted((t[2] - t[0]) // 2 for t in local.tolist()) == [2] * 7 + [4] * 3  # two motion speeds
+    # a motion video is learnt from whole: every frame, neighbours 2 apart (the held-out frames' own gap)
+    c = fake_video_subject(tmp_path / "c", count=7, size=32)
+    _, whole, counts, _ = pretrain.gather([a], [1], 0, [c])
+    assert counts["c"] == {"frames": 7, "triplets": 5, "validation": 0}
+    assert whole[whole[:, 0] >= 9].tolist() == [[9 + i, 10 + i, 11 + i] for i in range(5)]
     cfg = step_cfg(pretrain, ["scale=smoke", f"interp.subject_dirs=[{a},{b}]", f"interp.out_dir={tmp_path / 'out'}",
                               "interp.iterations=3", "interp.width=8", "interp.scales=2",
                               "interp.strides=[1,2]"])

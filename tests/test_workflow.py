@@ -382,6 +382,11 @@ def test_real_video_subject_runs_end_to_end(smoke_run, workdir):
     clips = list(dict.fromkeys(frames["sources"]))
     # 12 frames in all (smoke), shared over the clips: every clip is there
     assert len(clips) == len(list(SHARED_DATA.glob("obama/*.mp4"))) and [c["source"] for c in frames["crops"]] == clips
+    # the interpolation experiment scores only held-out frames whose neighbours share a clip (none may: then it says so)
+    interp = json.loads((folder / "interp.json").read_text())
+    clip_of = [clips.index(s) for s in frames["sources"]]
+    inside = [i for i in range(1, 11, 2) if clip_of[i - 1] == clip_of[i + 1]]
+    assert interp["held_out"] == len(inside) and (bool(inside) or "between two frames of one clip" in interp["skipped"])
     with np.load(folder / "fit_rgb.npz") as fitted:
         lighting, sources = fitted["lighting"], np.array(frames["sources"])
     assert lighting.shape == (12, 9, 3)

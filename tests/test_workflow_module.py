@@ -134,6 +134,12 @@ def test_plan_lists_the_dissertations_experiments():
     seeded = sorted(o.split("/base/")[1] for o in outputs if "/base/" in o and "_seed" in o)
     assert seeded == [f"{a}_seed{k}/eval.json" for a in ("alpha1", "alpha2") for k in (1, 2)]
     assert plan.subject_values("portraits")["fit_rgb.mode"] == "images"
+    # the interpolator's motion videos: synthesized and their frames extracted, never a subject of any experiment
+    assert sorted(plan.motion_videos) == ["motion_talk", "motion_talk2", "motion_turns", "motion_turns2"]
+    assert plan.subject_inputs("motion_talk") == ["results/smoke/subjects/motion_talk/input/video.mp4"]
+    assert not [o for o in outputs + plan.pretrain_outputs() + plan.preprocessing_outputs() if "motion_" in o]
+    with pytest.raises(ValueError, match="interp_motion_videos': synth_talk is also a subject"):
+        Plan({**config, "interp_motion_videos": {"synth_talk": {"source": "synthetic"}}})
     figures = [o for o in plan.pretrain_outputs() if "/controls/" in o]
     assert figures == [f"results/smoke/pretrain/controls/{f}.json" for f in config["control_figures"]]
     only_alpha1 = Plan({**config, "alphas": ["alpha1"]})  # figures naming a model this run does not train: left out

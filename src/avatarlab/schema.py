@@ -149,6 +149,7 @@ class Interp:
     validation_every: int = at_least(0)
     strides: list[int] = MISSING
     subject_dirs: list[str] = MISSING
+    motion_dirs: list[str] = MISSING
     out_dir: str = MISSING
     model: str = MISSING
 

@@ -11,8 +11,8 @@ rule synthesize_subject:
         **step_params(
             "avatarlab.data.synthetic_subject",
             values=lambda wc, input, output: {
-                "subject.name": wc.subject, "subject.preset": PLAN.subjects[wc.subject].get("preset", "talking"),
-                "subject.seed": int(PLAN.subjects[wc.subject].get("seed", 0)), "subject.video_out": output.video,
+                "subject.name": wc.subject, "subject.preset": PLAN.all_subjects[wc.subject].get("preset", "talking"),
+                "subject.seed": int(PLAN.all_subjects[wc.subject].get("seed", 0)), "subject.video_out": output.video,
                 "subject.truth_out": output.truth},
             run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
     threads: step_threads("light")
@@ -129,10 +129,12 @@ rule fit_rgbd:
 
 
 rule train_interpolator:
-    """The XVFI-style frame interpolator, trained once on every subject's video (interp.strides) and then
-    used for each subject; the frames the interpolation experiment holds out are never among its training frames."""
+    """The XVFI-style frame interpolator, trained once on every subject's video (interp.strides) and the motion
+    videos (whole), then used for each subject; the frames the interpolation experiment holds out are never among
+    its training frames."""
     input:
         meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.videos],
+        motion=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.motion_videos],
     output:
         model=f"{RESULTS}/interp/model.pt",
         report=f"{RESULTS}/interp/train.json",
@@ -141,6 +143,7 @@ rule train_interpolator:
     params:
         **step_params("avatarlab.preprocess.interp.pretrain", values=lambda wc, input, output: {
             "interp.subject_dirs": [str(Path(m).parent) for m in input.meta],
+            "interp.motion_dirs": [str(Path(m).parent) for m in input.motion],
             "interp.out_dir": str(Path(output.model).parent)},
             run_dir=lambda wc: f"{RESULTS}/interp/.hydra"),
     threads: step_threads("fit")

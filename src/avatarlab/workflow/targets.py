@@ -92,7 +92,13 @@ class Plan:
         self.logs = f"logs/{self.scale}"
         self.subjects = available_subjects(config.get("subjects", {}))
         self.real_images = config["real_images"]
-        self.all_subjects = {**self.subjects, self.real_images["name"]: self.real_images}
+        # videos the frame interpolator also learns from, whole (no experiment holds their frames out; nothing else
+        # uses them): their frames are extracted, nothing more
+        self.motion_videos = available_subjects(config.get("interp_motion_videos") or {})
+        clash = sorted(set(self.motion_videos) & (set(self.subjects) | {self.real_images["name"]}))
+        if clash:
+            raise ValueError(f"workflow config 'interp_motion_videos': {clash[0]} is also a subject; name it apart")
+        self.all_subjects = {**self.subjects, self.real_images["name"]: self.real_images, **self.motion_videos}
         self.synthetic = [n for n, s in self.subjects.items() if s["source"] == "synthetic"]
         self.image_sets = [n for n, s in self.all_subjects.items() if s["source"] in ("portraits", "images")]
         self.videos = [n for n in self.subjects if n not in self.image_sets]  # what the interpolator learns from

@@ -27,15 +27,18 @@ log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
 
 
-def gather(subject_dirs, strides, validation_every: int = 0) -> tuple[torch.Tensor, np.ndarray, dict, np.ndarray]:
-    """Every subject's frames in one tensor (all crops have the scale's size), the training triplets into it and the
-    validation triplets (every `validation_every`-th of each subject's, 0: none; (M, 4): the triplet and the index
-    of its subject) that choose the snapshot."""
+def gather(subject_dirs, strides, validation_every: int = 0,
+           motion_dirs=()) -> tuple[torch.Tensor, np.ndarray, dict, np.ndarray]:
+    """Every video's frames in one tensor (all crops have the scale's size), the training triplets into it and the
+    validation triplets (every `validation_every`-th of each video's, 0: none; (M, 4): the triplet and the index
+    of its video) that choose the snapshot. A subject's triplets use only the frames its variant (b) keeps
+    (neighbours 4 frames apart at stride 1); a motion video's (`motion_dirs`: no experiment holds frames out of it)
+    use every frame, so at stride 1 its neighbours are 2 frames apart, the gap the held-out frames sit in."""
     frames, triplets, validation, counts, offset = [], [], [], {}, 0
-    for folder in subject_dirs:
+    for folder in [*subject_dirs, *motion_dirs]:
         subject = SubjectDir(folder)
         images, clips = to_tensor(subject.frames()), subject.frame_clips()
-        kept, _ = split_variants(len(images), clips)
+        kept = np.arange(len(images)) if folder in motion_dirs else split_variants(len(images), clips)[0]
         found, held = validation_split(training_triplets(kept, strides, clips), validation_every)
         frames.append(images)
         triplets.append(found + offset)
@@ -54,11 +57,12 @@ def train_interpolator(cfg, device) -> dict:
     out_dir = Path(ip.out_dir)
     if not ip.subject_dirs:
         raise ValueError("interp.subject_dirs: no subject to learn interpolation from")
-    frames, triplets, counts, validation = gather(list(ip.subject_dirs), list(ip.strides), int(ip.validation_every))
+    frames, triplets, counts, validation = gather(list(ip.subject_dirs), list(ip.strides), int(ip.validation_every),
+                                                  list(ip.motion_dirs))
     if len(triplets) == 0:
         raise ValueError(f"interp.subject_dirs: too few frames for a triplet at strides {list(ip.strides)}")
     start = time.perf_counter()
-    data = {f"frames_{k}": Path(d) / "frames.json" for k, d in enumerate(ip.subject_dirs)}
+    data = {f"frames_{k}": Path(d) / "frames.json" for k, d in enumerate([*ip.subject_dirs, *ip.motion_dirs])}
     model, losses, chosen = train(frames, triplets, cfg, out_dir / "checkpoint.pt", device, data=data,
                                   validation=validation[:, :3], validation_groups=validation[:, 3])
     report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets),

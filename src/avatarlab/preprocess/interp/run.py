@@ -63,9 +63,17 @@ def main(cfg, device) -> None:
     frames_np = subject.frames()
     frames = to_tensor(frames_np)
     kept, held = split_variants(len(frames), subject.frame_clips())
-    if len(held) == 0:
-        raise ValueError(f"{subject.frames_json}: {len(frames)} frames are too few to hold any frame out between two "
-                         "frames of one clip")
+    if len(held) == 0:  # e.g. a few frames over many clips: nothing to score, and variant (c) adds nothing
+        reason = f"none of its {len(frames)} frames lies between two frames of one clip"
+        log.warning("%s: no interpolation experiment: %s", subject.frames_json, reason)
+        with atomic_path(subject_dir / "interpolated.npz") as tmp:
+            np.savez_compressed(tmp, indices=held, frames=np.zeros((0, *frames_np.shape[1:]), np.uint8), kept=kept)
+        write_png(subject_dir / "interp_comparison.png", frames_np[0])
+        write_json(subject_dir / "interp.json", {"frames": len(frames), "kept_b": len(kept), "held_out": 0,
+                                                 "model": str(cfg.interp.model), "skipped": reason,
+                                                 "xvfi": None, "farneback": None, "cross_fade": None,
+                                                 "paired_psnr_gain": None})
+        return
     model = load_interpolator(cfg.interp.model, device)
     start = time.perf_counter()
     with torch.no_grad():
