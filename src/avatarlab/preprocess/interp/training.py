@@ -52,7 +52,7 @@ def training_triplets(kept: np.ndarray, strides=(1,), clips: np.ndarray | None =
 
 def validation_split(triplets: np.ndarray, every: int) -> tuple[np.ndarray, np.ndarray]:
     """(training, validation) triplets: every `every`-th triplet (0: none) is held out to choose the snapshot, and no
-    training triplet has a validation triplet's middle frame as its own target."""
+    training triplet has a validation triplet's middle frame as its own target (it may be one's input)."""
     triplets = np.asarray(triplets)
     if every <= 0 or len(triplets) < 2:
         return triplets, triplets[:0]
@@ -81,9 +81,10 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
           validation: np.ndarray | None = None,
           validation_groups: np.ndarray | None = None) -> tuple[XVFILite, list[float], dict]:
     """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`.
-    With `validation` triplets (and their videos, `validation_groups`), scores the network on them before training and at every checkpoint, and returns
-    the best-scoring snapshot (before training it is its starting point: the Farneback flows' blend), so training
-    can only improve on where it started as far as frames it never trained on can tell; without, the last iterate.
+    With `validation` triplets (and their videos, `validation_groups`), scores the network on them before training
+    and at every checkpoint, and returns the best-scoring snapshot (before training it is its starting point: the
+    Farneback flows' blend), so training can only improve on where it started as far as frames it never trained to
+    predict can tell; without, the last iterate.
     The checkpoint resumes only the same work: settings, code and the data files in `data` (their digests).
     -> (model, training losses, {"curve": [[step, validation PSNR], ...], "best_step": ..., "best_psnr": ...})"""
     torch.manual_seed(int(cfg.seed))
