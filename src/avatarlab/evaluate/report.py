@@ -67,7 +67,8 @@ SUBSTITUTIONS = [
     ("LPIPS", "LPIPS-VGG", "LPIPS-VGG only with its backbone given (else 'missing'); ST-LPIPS (AlexNet, weights in "
      "its wheel) reported under its own name", "never a substitute under LPIPS's name"),
     ("frame interpolation", "XVFI trained on X4K1000FPS, its flows learnt from zero", "an XVFI-style multi-scale "
-     "flow network trained once on every subject's video (held-out frames excluded) that refines OpenCV's Farneback "
+     "flow network trained once on every subject's video (held-out frames excluded) and the synthetic motion "
+     "videos of interp_motion_videos, that refines OpenCV's Farneback "
      "flows (interp.flow_init=farneback; zero: XVFI's way)", "no downloaded weights or data; flows learnt from zero "
      "stay a cross-fade within a CPU budget"),
     ("RGBD captures", "ZED2 depth", "the synthetic subjects' rendered depth with Gaussian noise",
