@@ -26,14 +26,19 @@ from avatarlab.safe_load import load_tensors
 log = logging.getLogger(__name__)
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor, max_value: float | None = None) -> float:
-    """Eq. (10) per image, averaged over the images: 10 log10(MAX(I_GT)^2 / MSE), MAX the ground truth's largest value
-    (`max_value` fixes it instead). pred, target (B, C, H, W) in [0, 1]."""
+def psnr_per_image(pred: torch.Tensor, target: torch.Tensor, max_value: float | None = None) -> torch.Tensor:
+    """Eq. (10) for each image: 10 log10(MAX(I_GT)^2 / MSE), MAX the ground truth's largest value (`max_value` fixes
+    it instead). pred, target (B, C, H, W) in [0, 1] -> (B,)."""
     pred, target = pred.clamp(0, 1), target.reshape(-1, *target.shape[-3:])
     pred = pred.reshape(target.shape)
     mse = ((pred - target) ** 2).flatten(1).mean(1).clamp(min=1e-12)
     peak = target.flatten(1).amax(1) if max_value is None else torch.full_like(mse, max_value)
-    return float((10 * torch.log10(peak**2 / mse)).mean())
+    return 10 * torch.log10(peak**2 / mse)
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor, max_value: float | None = None) -> float:
+    """Eq. (10) per image, averaged over the images (`psnr_per_image`)."""
+    return float(psnr_per_image(pred, target, max_value).mean())
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:

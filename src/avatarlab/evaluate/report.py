@@ -264,9 +264,8 @@ def preprocessing_table(results: Path) -> Table:
 def _interp_gains(interp: dict) -> dict:
     """The preprocessing table's paired columns from an interp.json (missing for one written before them)."""
     paired = interp.get("paired_psnr_gain") or {}
-    fade = paired.get("cross_fade") or {}
-    return {"interp_gain_vs_farneback_db": (paired.get("farneback") or {}).get("mean_db"),
-            "interp_gain_vs_farneback_ci95": (paired.get("farneback") or {}).get("ci95_db"),
+    flow, fade = paired.get("farneback") or {}, paired.get("cross_fade") or {}
+    return {"interp_gain_vs_farneback_db": flow.get("mean_db"), "interp_gain_vs_farneback_ci95": flow.get("ci95_db"),
             "interp_gain_vs_crossfade_db": fade.get("mean_db"), "interp_gain_vs_crossfade_ci95": fade.get("ci95_db"),
             "interp_frames_won_vs_crossfade": (f"{fade['wins']}/{fade['frames']}" if fade else None)}
 

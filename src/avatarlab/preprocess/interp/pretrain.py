@@ -35,14 +35,15 @@ def gather(subject_dirs, strides, validation_every: int = 0,
     (neighbours 4 frames apart at stride 1); a motion video's (`motion_dirs`: no experiment holds frames out of it)
     use every frame, so at stride 1 its neighbours are 2 frames apart, the gap the held-out frames sit in."""
     frames, triplets, validation, counts, offset = [], [], [], {}, 0
-    for folder in [*subject_dirs, *motion_dirs]:
+    videos = [(folder, False) for folder in subject_dirs] + [(folder, True) for folder in motion_dirs]
+    for index, (folder, whole) in enumerate(videos):
         subject = SubjectDir(folder)
         images, clips = to_tensor(subject.frames()), subject.frame_clips()
-        kept = np.arange(len(images)) if folder in motion_dirs else split_variants(len(images), clips)[0]
+        kept = np.arange(len(images)) if whole else split_variants(len(images), clips)[0]
         found, held = validation_split(training_triplets(kept, strides, clips), validation_every)
         frames.append(images)
         triplets.append(found + offset)
-        validation.append(np.concatenate([held + offset, np.full((len(held), 1), len(counts))], 1))
+        validation.append(np.concatenate([held + offset, np.full((len(held), 1), index)], 1))
         counts[Path(folder).name] = {"frames": len(images), "triplets": len(found), "validation": len(held)}
         offset += len(images)
     sizes = {tuple(f.shape[1:]) for f in frames}

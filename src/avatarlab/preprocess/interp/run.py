@@ -21,7 +21,7 @@ from scipy import stats
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path, write_json, write_png
-from avatarlab.metrics import STLPIPS
+from avatarlab.metrics import STLPIPS, psnr_per_image
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.preprocess.interp.training import split_variants, to_tensor
@@ -38,9 +38,14 @@ def quality(pred: torch.Tensor, target: torch.Tensor, st_lpips=None) -> dict[str
 
 
 def frame_psnr(pred: torch.Tensor, target: torch.Tensor) -> np.ndarray:
-    """(N,) the PSNR of each frame."""
-    mse = ((pred.float() - target.float()) ** 2).flatten(1).mean(1).clamp_min(1e-12)
-    return (10 * torch.log10(1 / mse)).numpy()
+    """(N,) the PSNR of each frame (MAX = 1, as the pooled figures beside it)."""
+    return psnr_per_image(pred.float(), target.float(), 1.0).numpy()
+
+
+def write_interpolated(subject_dir: Path, held: np.ndarray, frames_u8: np.ndarray, kept: np.ndarray) -> None:
+    """interpolated.npz: the re-created frames (K, H, W, 3) uint8 at `held`, beside the frames variant (b) keeps."""
+    with atomic_path(subject_dir / "interpolated.npz") as tmp:
+        np.savez_compressed(tmp, indices=held, frames=frames_u8, kept=kept)
 
 
 def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
@@ -66,8 +71,7 @@ def main(cfg, device) -> None:
     if len(held) == 0:  # e.g. a few frames over many clips: nothing to score, and variant (c) adds nothing
         reason = f"none of its {len(frames)} frames lies between two frames of one clip"
         log.warning("%s: no interpolation experiment: %s", subject.frames_json, reason)
-        with atomic_path(subject_dir / "interpolated.npz") as tmp:
-            np.savez_compressed(tmp, indices=held, frames=np.zeros((0, *frames_np.shape[1:]), np.uint8), kept=kept)
+        write_interpolated(subject_dir, held, np.zeros((0, *frames_np.shape[1:]), np.uint8), kept)
         write_png(subject_dir / "interp_comparison.png", frames_np[0])
         write_json(subject_dir / "interp.json", {"frames": len(frames), "kept_b": len(kept), "held_out": 0,
                                                  "model": str(cfg.interp.model), "skipped": reason,
@@ -92,8 +96,7 @@ def main(cfg, device) -> None:
                                    for name, pred in (("farneback", flow), ("cross_fade", fade))},
               "variants": {"a": len(frames), "b": len(kept), "c": len(kept) + len(held)}}
     out_u8 = (xvfi.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    with atomic_path(subject_dir / "interpolated.npz") as tmp:
-        np.savez_compressed(tmp, indices=held, frames=out_u8, kept=kept)
+    write_interpolated(subject_dir, held, out_u8, kept)
     show = np.linspace(0, len(held) - 1, min(3, len(held))).round().astype(int)
     rows = [np.concatenate([frames_np[held[k]], out_u8[k], (flow[k].permute(1, 2, 0).numpy() * 255).astype(np.uint8)],
                            1) for k in show]
