@@ -367,6 +367,55 @@ def test_real_clips_can_be_limited_per_speaker(tmp_path):
         "grid/a.mp4", "grid/b.mp4", "obama/x.mp4", "obama/y.mp4"]
 
 
+def test_loudness_predictors_cover_the_frame_and_the_models_window():
+    """Loudness of a clip that sounds only in [1.00, 1.04) s: the frame predictor rises at frame 25 alone, the window
+    predictor at every frame whose window (250 ms ending 130 ms after the frame) overlaps that span: 22..28."""
+    from avatarlab.speech.real_eval import loudness, loudness_predictors
+
+    rate = 25_000
+    audio = np.zeros(2 * rate, np.float32)
+    audio[rate:rate + rate // 25] = 0.5  # a constant: RMS 0.5
+    pred = loudness_predictors(audio, 50, FeatureSpec(sample_rate=rate))
+    quiet = np.log(1e-4)
+    assert np.flatnonzero(pred["loudness_frame"] > quiet + 1).tolist() == [25]
+    assert pred["loudness_frame"][25] == pytest.approx(np.log(0.5 + 1e-4), abs=1e-5)
+    assert np.flatnonzero(pred["loudness_window"] > quiet + 1).tolist() == list(range(22, 29))
+    # frame 25's window is 250 ms, 40 of them loud: RMS 0.5 * sqrt(40 / 250)
+    assert pred["loudness_window"][25] == pytest.approx(np.log(0.5 * np.sqrt(40 / 250) + 1e-4), abs=1e-4)
+    assert loudness(audio, rate, 3, 5000, 6000).tolist() == [pytest.approx(quiet)] * 3  # past the clip's end
+
+
+def test_opening_timing_scores_the_mouths_rhythm_beside_loudness():
+    """A prediction that opens with the truth has r = 1, a still one r = 0, a late one less; loudness that follows
+    the truth's rhythm is the baseline the gains are paired against, per clip."""
+    from avatarlab.speech.lip_metrics import correlation, mouth_opening
+    from avatarlab.speech.real_eval import RealClip, opening_timing
+
+    rng = np.random.default_rng(0)
+    clips, late = [], []
+    for k in range(4):
+        gap = np.clip(np.sin(np.linspace(0, 6 + k, 60)), 0, None) + 0.05 * rng.standard_normal(60)
+        truth = np.zeros((60, 68, 2), np.float32)
+        truth[:, 62, 1], truth[:, 66, 1] = gap / 2, -gap / 2
+        loud = {"loudness_frame": gap + 0.5 * rng.standard_normal(60), "loudness_window": rng.standard_normal(60)}
+        clips.append(RealClip(f"c{k}", "spk", np.zeros(1, np.float32), np.zeros((60, 1, 65), np.float32), truth,
+                              60, 60, loudness=loud))
+        late.append(np.roll(truth, 3, axis=0))
+    np.testing.assert_allclose(mouth_opening(clips[0].truth), clips[0].truth[:, 62, 1] - clips[0].truth[:, 66, 1])
+    exact = opening_timing([c.truth for c in clips], clips)
+    assert exact["model_r"] == pytest.approx(1.0) and exact["best_baseline"] == "loudness_frame"
+    base = [correlation(c.loudness["loudness_frame"], mouth_opening(c.truth)) for c in clips]
+    assert exact["baselines_r"]["loudness_frame"] == pytest.approx(np.mean(base))
+    assert exact["gain_mean_per_clip"] == pytest.approx(1 - np.mean(base)) and exact["wins"] == 4
+    assert exact["beats_best_baseline"] == (exact["gain_mean_per_clip"] - exact["gain_ci95"] > 0)
+    still = opening_timing([np.repeat(c.truth.mean(0, keepdims=True), 60, 0) for c in clips], clips)
+    assert still["model_r"] == 0.0 and still["wins"] == 0 and not still["beats_best_baseline"]
+    shifted = opening_timing(late, clips)
+    assert 0 < shifted["model_r"] < exact["model_r"]
+    assert shifted["per_clip"]["c0"]["model_r"] == pytest.approx(
+        correlation(mouth_opening(late[0]), mouth_opening(clips[0].truth)))
+
+
 def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_model):
     """GRID and Obama clips (one without audio: skipped), a model with a phoneme head; every row's still mouth
     is the clip's mean shape scored on its own frames, the adapted models differ from the synthetic one."""
@@ -409,6 +458,13 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
             assert r["gain_mean_per_clip"] == pytest.approx(np.mean(gains))
             assert r["beats_still_mouth"] == (r["gain_mean_per_clip"] - r["gain_ci95"] > 0)
         assert rows["adapted_other_clips"]["lip_error_percent"] != rows["synthetic"]["lip_error_percent"]
+        for r in rows.values():  # the opening's timing beside loudness, on the same clips
+            t = r["opening_timing"]
+            assert set(t["per_clip"]) == set(r["per_clip"]) and -1 <= t["model_r"] <= 1
+            assert set(t["baselines_r"]) == {"loudness_frame", "loudness_window"}
+            best = t["baselines_r"][t["best_baseline"]]
+            assert best == max(t["baselines_r"].values()) and -1 <= best <= 1
+            assert t["gain_mean_per_clip"] == pytest.approx(t["model_r"] - best)
     assert 0 <= speakers["grid"]["synthetic"]["phoneme_accuracy_vs_alignment"] <= 1
     assert "phoneme_accuracy_vs_alignment" not in speakers["obama"]["synthetic"]  # no sentence to align
     # the report's speech table: one row per model, speaker and row kind, as trained first, beside the still mouth
@@ -421,3 +477,8 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     first = speakers["grid"]["synthetic"]
     assert real_rows[0]["data"] == "2 real grid clips" and real_rows[0]["baseline_iod"] == first["still_mouth_percent"]
     assert real_rows[0]["gain_iod"] == pytest.approx(first["still_mouth_percent"] - first["lip_error_percent"])
+    from avatarlab.evaluate.report import speech_timing_table
+
+    timing_rows = speech_timing_table(tmp_path / "results").rows
+    assert len(timing_rows) == 6 and timing_rows[0]["opening_r"] == first["opening_timing"]["model_r"]
+    assert timing_rows[0]["verdict"] in {"better", "worse", "within the clips' spread"}

@@ -25,6 +25,20 @@ def lip_error_percent(pred: np.ndarray, truth: np.ndarray) -> float:
     return float(100 * err.mean())
 
 
+def mouth_opening(points: np.ndarray) -> np.ndarray:
+    """The gap between the inner lips' middle points (62 above, 66 below; y up) of each (68, 2) frame of (T, 68, 2)
+    aligned landmarks: the mouth's opening, whose timing a model of speech should follow."""
+    return points[:, 62, 1] - points[:, 66, 1]
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson's r of two series; 0 when either is constant (a still mouth follows nothing)."""
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
+        return 0.0
+    a, b = a.astype(np.float64) - a.mean(dtype=np.float64), b.astype(np.float64) - b.mean(dtype=np.float64)
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
 def motion_only(preds: list[np.ndarray], truths: list[np.ndarray]) -> np.ndarray:
     """Each utterance's predicted frames moved so that their mean shape is the truth's (the speaker's face, which
     no model here is told): the lip error of what remains is the error of the mouth's motion."""

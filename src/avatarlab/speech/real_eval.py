@@ -10,7 +10,11 @@ predictor to beat. Rows per speaker (the clip's folder: grid, obama):
   speaker is heard in the other clips: two real speakers only here);
 - `adapted_other_speakers`: fine-tuned on the other speakers' clips only (the held-out speaker never heard).
 Each beside the still mouth, with the per-clip paired gain (mean +- 95 % CI over clips, wins) so that a gain is
-called one only when the CI excludes zero. GRID clips also get the phoneme accuracy of models with a phoneme module
+called one only when the CI excludes zero. A second view, on timing alone: the correlation over each clip's frames
+of the predicted and the true mouth opening (the inner lips' gap), beside what the audio's loudness alone gives
+(log RMS over the video frame's own 40 ms, and over the model's own window), again with the per-clip paired gain
+over the better of the two. The still mouth follows nothing (r = 0); loudness is the trivial predictor of when a
+mouth opens. GRID clips also get the phoneme accuracy of models with a phoneme module
 against an alignment derived by DTW with espeak-ng (speech/grid.py) and, where GRID's `.align` exists, its word-start
 error. Clips without an audio track are listed as skipped.
 `python -m avatarlab.speech.real_eval speech.real_clips='[../shared/data/grid/*.mpg]' \
@@ -36,7 +40,7 @@ from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
-from avatarlab.speech.lip_metrics import align_to, lip_error_percent, motion_only
+from avatarlab.speech.lip_metrics import align_to, correlation, lip_error_percent, motion_only, mouth_opening
 from avatarlab.speech.models import AudioToVisemes, load_speech_model
 from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import frame_labels, viseme_basis
@@ -59,6 +63,27 @@ class RealClip:
     text: str | None = None
     labels: np.ndarray | None = None   # derived phoneme ids per 25-fps frame (GRID clips)
     word_start_error_ms: float | None = None
+    loudness: dict[str, np.ndarray] | None = None  # LOUDNESS's predictors of the mouth opening, per 25-fps frame
+
+
+def loudness(audio: np.ndarray, rate: int, frames: int, start_ms: float, end_ms: float) -> np.ndarray:
+    """Log RMS of `audio` in [k * 40 ms + start_ms, k * 40 ms + end_ms) for each 25-fps frame k (the part inside
+    the clip; -9.2, log 1e-4, where it is silent or outside)."""
+    out = np.empty(frames, np.float32)
+    for k in range(frames):
+        lo = max(0, int(round((k / FPS + start_ms / 1000) * rate)))
+        hi = min(len(audio), int(round((k / FPS + end_ms / 1000) * rate)))
+        part = audio[lo:hi]
+        out[k] = np.log(np.sqrt(np.mean(part.astype(np.float64) ** 2)) + 1e-4) if len(part) else np.log(1e-4)
+    return out
+
+
+def loudness_predictors(audio: np.ndarray, frames: int, spec: FeatureSpec) -> dict[str, np.ndarray]:
+    """The trivial predictors of the mouth's opening from the audio alone: its loudness in the video frame's own
+    40 ms, and in the window the models hear (spec.window_ms ending spec.lookahead_ms after the frame)."""
+    return {"loudness_frame": loudness(audio, spec.sample_rate, frames, 0.0, 1000 / FPS),
+            "loudness_window": loudness(audio, spec.sample_rate, frames, spec.lookahead_ms - spec.window_ms,
+                                        spec.lookahead_ms)}
 
 
 def video_landmarks(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
@@ -99,7 +124,7 @@ def load_clip(path: Path, neutral: np.ndarray, spec: FeatureSpec, tts: Espeak) -
         return None
     truth = resample_truth(align_to(points, neutral), found, fps)
     clip = RealClip(path.stem, path.parent.name, audio, windows(audio, spec.sample_rate, len(truth), spec), truth,
-                    len(found), int(found.sum()))
+                    len(found), int(found.sum()), loudness=loudness_predictors(audio, len(truth), spec))
     try:
         clip.text = sentence(path.stem)
     except ValueError:
@@ -158,16 +183,42 @@ def still_mouth(clip: RealClip) -> np.ndarray:
     return np.repeat(clip.truth.mean(0, keepdims=True), len(clip.truth), 0)
 
 
+def ci95(values: np.ndarray) -> float | None:
+    """The 95 % CI half-width of the mean of per-clip values (Student's t), None for one clip."""
+    return (float(stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values)))
+            if len(values) > 1 else None)
+
+
+def opening_timing(preds: list[np.ndarray], clips: list[RealClip]) -> dict | None:
+    """How well each clip's predicted mouth opening follows the true one over time (Pearson's r per clip), beside the
+    loudness predictors' r on the same frames, and the per-clip paired gain over the better of them (by mean)."""
+    if any(c.loudness is None for c in clips):
+        return None
+    truths = [mouth_opening(c.truth) for c in clips]
+    model = np.array([correlation(mouth_opening(p), t) for p, t in zip(preds, truths)])
+    baselines = {name: np.array([correlation(c.loudness[name], t) for c, t in zip(clips, truths)])
+                 for name in clips[0].loudness}
+    best = max(baselines, key=lambda name: baselines[name].mean())
+    gains = model - baselines[best]
+    half = ci95(gains)
+    return {"model_r": float(model.mean()), "model_r_ci95": ci95(model),
+            "baselines_r": {name: float(r.mean()) for name, r in baselines.items()}, "best_baseline": best,
+            "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half, "wins": int((gains > 0).sum()),
+            "beats_best_baseline": bool(half is not None and gains.mean() - half > 0),
+            "per_clip": {c.name: {"model_r": float(m), **{name: float(r[k]) for name, r in baselines.items()}}
+                         for k, (c, m) in enumerate(zip(clips, model))}}
+
+
 def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
-    """Lip errors of `preds` over the clips' frames beside the still mouth's, and the per-clip paired gain."""
+    """Lip errors of `preds` over the clips' frames beside the still mouth's, and the per-clip paired gain; the
+    opening's timing beside the loudness predictors' (`opening_timing`)."""
     truth = np.concatenate([c.truth for c in clips])
     stills = [still_mouth(c) for c in clips]
     model = [lip_error_percent(p, c.truth) for p, c in zip(preds, clips)]
     still = [lip_error_percent(s, c.truth) for s, c in zip(stills, clips)]
     gains = np.array(still) - np.array(model)
-    half = (float(stats.t.ppf(0.975, len(gains) - 1) * gains.std(ddof=1) / np.sqrt(len(gains)))
-            if len(gains) > 1 else None)
-    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
+    half = ci95(gains)
+    return {"opening_timing": opening_timing(preds, clips), "lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
             "still_mouth_percent": lip_error_percent(np.concatenate(stills), truth),
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half,
             "wins": int((gains > 0).sum()), "clips": len(clips),
@@ -254,6 +305,13 @@ def run(cfg) -> dict:
                 log.info("%s on %s (%d clips), %s: lip motion error %.2f %% IOD vs still mouth %.2f %% (gain per "
                          "clip %+.2f%s, %d/%d wins)", name, speaker, r["clips"], row, r["lip_error_percent"],
                          r["still_mouth_percent"], r["gain_mean_per_clip"], ci, r["wins"], r["clips"])
+                timing = r["opening_timing"]
+                if timing is not None:
+                    ci = "" if timing["gain_ci95"] is None else f" +- {timing['gain_ci95']:.2f}"
+                    log.info("%s on %s, %s: mouth-opening r %.2f vs %s %.2f (gain per clip %+.2f%s, %d/%d wins)",
+                             name, speaker, row, timing["model_r"], timing["best_baseline"],
+                             timing["baselines_r"][timing["best_baseline"]], timing["gain_mean_per_clip"], ci,
+                             timing["wins"], r["clips"])
     return report
 
 
