@@ -300,10 +300,16 @@ def test_the_interpolator_started_from_farneback_flows_is_the_farneback_baseline
     a, b, middle = disc(26), disc(34), disc(30)
     ta, tb, tm = (torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255 for x in (a, b, middle))
     baseline = torch.from_numpy(interpolate_farneback(a, b)).permute(2, 0, 1)[None].float() / 255
-    with torch.no_grad():
-        out = XVFILite(width=8, scales=3, flow_init="farneback")(ta, tb)
-    assert float((out - baseline).abs().max()) < 1 / 255
-    assert float((out - tm).abs().mean()) < 0.2 * float((0.5 * (ta + tb) - tm).abs().mean())
+    for keep_unwarped in (False, True):  # the unwarped share starts at zero
+        net = XVFILite(width=8, scales=3, flow_init="farneback", keep_unwarped=keep_unwarped)
+        with torch.no_grad():
+            out = net(ta, tb)
+        assert float((out - baseline).abs().max()) < 1 / 255
+        assert float((out - tm).abs().mean()) < 0.2 * float((0.5 * (ta + tb) - tm).abs().mean())
+    with torch.no_grad():  # a full share (10 * 0.2 * sigmoid(0) = 1) is the cross-fade itself
+        net.synthesis.keep.fill_(0.2)
+        out = net(ta, tb)
+    np.testing.assert_allclose(out.numpy(), (0.5 * (ta + tb)).numpy(), atol=1e-5)
     with pytest.raises(ValueError, match="flow_init"):
         XVFILite(width=8, flow_init="raft")
 
@@ -342,12 +348,20 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert report["iterations"] == 3 and report["triplets"] == 7 and not (tmp_path / "out" / "checkpoint.pt").exists()
     assert [step for step, _ in report["validation_psnr_curve"]] == [0, 3]  # before training, at the checkpoint
     assert report["chosen_validation_psnr"] == max(v for _, v in report["validation_psnr_curve"])
-    assert load_interpolator(tmp_path / "out" / "model.pt").width == 8
-    net = XVFILite(width=8, scales=2)
+    trained = load_interpolator(tmp_path / "out" / "model.pt")
+    assert trained.width == 8 and not trained.keep_unwarped  # conf/config.yaml's default
+    net = XVFILite(width=8, scales=2, keep_unwarped=True)
+    with torch.no_grad():
+        net.synthesis.keep.fill_(0.03)
     save_interpolator(tmp_path / "net.pt", net, 3)
     again = load_interpolator(tmp_path / "net.pt")
-    for p, q in zip(net.parameters(), again.parameters()):
+    assert again.keep_unwarped and float(again.synthesis.keep) == pytest.approx(0.03)
+    for p, q in zip(net.parameters(), again.parameters(), strict=True):
         torch.testing.assert_close(p, q)
+    older = {k: v for k, v in torch.load(tmp_path / "net.pt", weights_only=True).items() if k != "keep_unwarped"}
+    older["state"] = XVFILite(width=8, scales=2).state_dict()  # a network saved before keep_unwarped existed
+    torch.save(older, tmp_path / "older.pt")
+    assert not load_interpolator(tmp_path / "older.pt").keep_unwarped
     torch.save({"format": "other"}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="bad.pt: not an avatarlab frame interpolator"):
         load_interpolator(tmp_path / "bad.pt")

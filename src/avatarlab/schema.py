@@ -142,6 +142,7 @@ class Interp:
     width: int = at_least(1)
     scales: int = at_least(1)
     flow_init: str = one_of("zero", "farneback")
+    keep_unwarped: bool = MISSING
     lr: float = at_least(0)
     batch: int = at_least(1)
     iterations: int = at_least(0)

@@ -5,6 +5,13 @@ flows of the coarser one), bidirectional flows F01/F10, complementary flow rever
 backward warping, and a synthesis step that blends the two warped frames with a learned occlusion map plus a
 residual refinement. Sizes are small so it trains on a CPU.
 
+`keep_unwarped` (an option, off by default; not XVFI's): the synthesis may also keep a learned per-pixel share of the
+unwarped cross-fade. Where the flows are nearly zero the cross-fade is almost exact, while a warp by small, noisy flows
+resamples (blurs) the frame: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade
+(docs/experiment-log.md, 2026-12-05). The share is `10 * keep * sigmoid(logit)`, `keep` a scalar that starts at
+zero, so the untrained network is still exactly the warp of its starting flows. Over seeds 0-2 it moved the held-out
+PSNR by +0.23 dB (synth_talk), -0.17 (synth_turns) and +0.03 (obama), within the seeds' spread, so it stays off.
+
 Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
 here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two
 frames, and the shared flow module refines a residual on top of them coarse to fine: with the last layers at zero the
@@ -45,29 +52,38 @@ class FlowModule(nn.Module):
 
 
 class SynthesisModule(nn.Module):
-    def __init__(self, width: int):
+    """Occlusion-weighted blend of the two warped frames plus a residual; with `keep_unwarped`, a learned share of the
+    unwarped cross-fade (see the module's docstring)."""
+
+    def __init__(self, width: int, keep_unwarped: bool = False):
         super().__init__()
+        self.keep_unwarped = keep_unwarped
         self.net = nn.Sequential(_block(3 * 4 + 4, width), _block(width, width), _block(width, width),
-                                 nn.Conv2d(width, 4, 3, padding=1))
+                                 nn.Conv2d(width, 5 if keep_unwarped else 4, 3, padding=1))
+        if keep_unwarped:
+            self.keep = nn.Parameter(torch.zeros(()))  # x10 below: Adam's steps of ~lr move the share fast enough
 
     def forward(self, i0, i1, w0, w1, ft0, ft1, t):
         out = self.net(torch.cat([i0, i1, w0, w1, ft0 / 8, ft1 / 8], 1))
         vis = torch.sigmoid(out[:, :1])
         blend = ((1 - t) * vis * w0 + t * (1 - vis) * w1) / ((1 - t) * vis + t * (1 - vis) + 1e-6)
-        return (blend + 0.1 * torch.tanh(out[:, 1:])).clamp(0, 1)
+        if self.keep_unwarped:
+            share = 10 * self.keep * torch.sigmoid(out[:, 4:5])
+            blend = (1 - share) * blend + share * ((1 - t) * i0 + t * i1)
+        return (blend + 0.1 * torch.tanh(out[:, 1:4])).clamp(0, 1)
 
 
 MODEL_FORMAT = "avatarlab-interpolator-1"
 
 
 class XVFILite(nn.Module):
-    def __init__(self, width: int = 32, scales: int = 3, flow_init: str = "zero"):
+    def __init__(self, width: int = 32, scales: int = 3, flow_init: str = "zero", keep_unwarped: bool = False):
         super().__init__()
         if flow_init not in FLOW_INITS:
             raise ValueError(f"flow_init must be one of {FLOW_INITS}, got {flow_init!r}")
-        self.scales, self.width, self.flow_init = scales, width, flow_init
+        self.scales, self.width, self.flow_init, self.keep_unwarped = scales, width, flow_init, keep_unwarped
         self.flow = FlowModule(width)
-        self.synthesis = SynthesisModule(width)
+        self.synthesis = SynthesisModule(width, keep_unwarped)
         # start as the initial flows' warp-and-average (a cross-fade for zero flows): flow residuals, occlusion logits
         # and refinement at zero
         for last in (self.flow.net[-1], self.synthesis.net[-1]):
@@ -113,7 +129,7 @@ def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
 
     with atomic_path(Path(path)) as tmp:
         torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "flow_init": model.flow_init,
-                    "iterations": iterations,
+                    "keep_unwarped": model.keep_unwarped, "iterations": iterations,
                     "state": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
 
 
@@ -124,6 +140,7 @@ def load_interpolator(path: str | Path, device: torch.device | str = "cpu") -> X
     content = load_tensors(Path(path), "a frame interpolator (model.pt)")
     if not isinstance(content, dict) or content.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: not an avatarlab frame interpolator (expected format {MODEL_FORMAT})")
-    model = XVFILite(int(content["width"]), int(content["scales"]), str(content.get("flow_init", "zero")))
+    model = XVFILite(int(content["width"]), int(content["scales"]), str(content.get("flow_init", "zero")),
+                     bool(content.get("keep_unwarped", False)))
     model.load_state_dict(content["state"])
     return model.eval().to(device)

@@ -88,7 +88,8 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
     The checkpoint resumes only the same work: settings, code and the data files in `data` (their digests).
     -> (model, training losses, {"curve": [[step, validation PSNR], ...], "best_step": ..., "best_psnr": ...})"""
     torch.manual_seed(int(cfg.seed))
-    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales), str(cfg.interp.flow_init)).to(device)
+    model = XVFILite(int(cfg.interp.width), int(cfg.interp.scales), str(cfg.interp.flow_init),
+                     bool(cfg.interp.keep_unwarped)).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=float(cfg.interp.lr))
     amp = bool(cfg.get("amp", False))
     scaler = grad_scaler(device, amp)
