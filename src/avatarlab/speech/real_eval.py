@@ -63,7 +63,7 @@ class RealClip:
     text: str | None = None
     labels: np.ndarray | None = None   # derived phoneme ids per 25-fps frame (GRID clips)
     word_start_error_ms: float | None = None
-    loudness: dict[str, np.ndarray] | None = None  # loudness_predictors(): the trivial openings, per 25-fps frame
+    loudness: dict[str, np.ndarray] | None = None  # loudness_predictors(): trivial predictors of the opening
 
 
 def loudness(audio: np.ndarray, rate: int, frames: int, start_ms: float, end_ms: float) -> np.ndarray:
