@@ -708,6 +708,15 @@ SPEECH_MODELS = {"lstm_reg": "seed 000, with regularisation", "lstm_noreg": "see
                  "window": "seed 001 sliding window (phoneme labels in, as the paper's linguistic indicators)"}
 
 
+def real_speech_rows(results: Path):
+    """(method label, speaker, row) of speech/real_eval.json: per model and speaker, as trained, then adapted."""
+    real = read_json(results / "speech" / "real_eval.json")
+    for name, model in (real or {}).get("models", {}).items():
+        for speaker, by_row in model["speakers"].items():
+            for key in [k for k in REAL_SPEECH_ROWS if k in by_row]:
+                yield f"{SPEECH_MODELS.get(name, name)}, {REAL_SPEECH_ROWS[key]}", speaker, by_row[key]
+
+
 def speech_table(results: Path, scale: str) -> Table:
     table = Table("speech", "Speech-driven animation (seed 000's table; seed 001's window model)",
                   ["source", "method", "data", "latency_ms", "lip_error_iod", "motion_error_iod", "best_baseline",
@@ -729,8 +738,7 @@ def speech_table(results: Path, scale: str) -> Table:
                   "its CI.")
     for row in PUBLISHED_SPEECH:
         table.add(source="published", data="GRID", **row)
-    names = SPEECH_MODELS
-    for key, label in names.items():
+    for key, label in SPEECH_MODELS.items():
         run = read_json(results / "speech" / key / "metrics.json")
         if run:
             t = run["test"]
@@ -746,17 +754,11 @@ def speech_table(results: Path, scale: str) -> Table:
         table.add(source="this run", method="  seed 001 retargeted to the head model's rig (+-3 sigma poses), "
                   "motion only (identity offset removed)", data=f"synthetic corpus, {scale}",
                   lip_error_iod=window["test"]["retargeted_lip_error_percent"])
-    real = read_json(results / "speech" / "real_eval.json")
-    rows = REAL_SPEECH_ROWS
-    for name, model in (real or {}).get("models", {}).items():
-        for speaker, by_row in model["speakers"].items():
-            for key in [k for k in rows if k in by_row]:  # as trained, then adapted
-                r = by_row[key]
-                table.add(source="this run", method=f"{names.get(name, name)}, {rows[key]}",
-                          data=f"{r['clips']} real {speaker} clips", motion_error_iod=r["lip_error_percent"],
-                          best_baseline="still_mouth", baseline_iod=r["still_mouth_percent"],
-                          gain_iod=r["still_mouth_percent"] - r["lip_error_percent"],
-                          clip_gain_ci95=r["gain_ci95"], wins=f"{r['wins']}/{r['clips']}")
+    for method, speaker, r in real_speech_rows(results):
+        table.add(source="this run", method=method, data=f"{r['clips']} real {speaker} clips",
+                  motion_error_iod=r["lip_error_percent"], best_baseline="still_mouth",
+                  baseline_iod=r["still_mouth_percent"], gain_iod=r["still_mouth_percent"] - r["lip_error_percent"],
+                  clip_gain_ci95=r["gain_ci95"], wins=f"{r['wins']}/{r['clips']}")
     return table
 
 
@@ -771,20 +773,16 @@ def speech_timing_table(results: Path) -> Table:
                   "loudness_frame, or over the model's own input window: loudness_window), and best_baseline is the "
                   "better of the two on these clips. gain_r: the per-clip paired gain over it, clip_gain_ci95 its "
                   "95 % CI half-width over clips; verdict 'better' / 'worse' only beyond that CI.")
-    real = read_json(results / "speech" / "real_eval.json")
-    for name, model in (real or {}).get("models", {}).items():
-        for speaker, by_row in model["speakers"].items():
-            for key in [k for k in REAL_SPEECH_ROWS if k in by_row]:
-                r, t = by_row[key], by_row[key].get("opening_timing")
-                if not t:
-                    continue
-                half, gain = t["gain_ci95"], t["gain_mean_per_clip"]
-                verdict = ("missing" if half is None else "better" if gain - half > 0 else
-                           "worse" if gain + half < 0 else "within the clips' spread")
-                table.add(method=f"{SPEECH_MODELS.get(name, name)}, {REAL_SPEECH_ROWS[key]}",
-                          data=f"{r['clips']} real {speaker} clips", opening_r=t["model_r"],
-                          best_baseline=t["best_baseline"], baseline_r=t["baselines_r"][t["best_baseline"]],
-                          gain_r=gain, clip_gain_ci95=half, wins=f"{t['wins']}/{r['clips']}", verdict=verdict)
+    for method, speaker, r in real_speech_rows(results):
+        t = r.get("opening_timing")
+        if not t:
+            continue
+        half, gain = t["gain_ci95"], t["gain_mean_per_clip"]
+        verdict = ("missing" if half is None else "better" if gain - half > 0 else
+                   "worse" if gain + half < 0 else "within the clips' spread")
+        table.add(method=method, data=f"{r['clips']} real {speaker} clips", opening_r=t["model_r"],
+                  best_baseline=t["best_baseline"], baseline_r=t["baselines_r"][t["best_baseline"]], gain_r=gain,
+                  clip_gain_ci95=half, wins=f"{t['wins']}/{r['clips']}", verdict=verdict)
     return table
 
 

@@ -32,9 +32,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from scipy import stats
 
 from avatarlab.entry import entry_point
+from avatarlab.evaluate.seed_stats import mean_ci
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
@@ -183,12 +183,6 @@ def still_mouth(clip: RealClip) -> np.ndarray:
     return np.repeat(clip.truth.mean(0, keepdims=True), len(clip.truth), 0)
 
 
-def ci95(values: np.ndarray) -> float | None:
-    """The 95 % CI half-width of the mean of per-clip values (Student's t), None for one clip."""
-    return (float(stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values)))
-            if len(values) > 1 else None)
-
-
 def opening_timing(preds: list[np.ndarray], clips: list[RealClip]) -> dict | None:
     """How well each clip's predicted mouth opening follows the true one over time (Pearson's r per clip), beside the
     loudness predictors' r on the same frames, and the per-clip paired gain over the better of them (by mean)."""
@@ -200,8 +194,8 @@ def opening_timing(preds: list[np.ndarray], clips: list[RealClip]) -> dict | Non
                  for name in clips[0].loudness}
     best = max(baselines, key=lambda name: baselines[name].mean())
     gains = model - baselines[best]
-    half = ci95(gains)
-    return {"model_r": float(model.mean()), "model_r_ci95": ci95(model),
+    half = mean_ci(gains)[1]
+    return {"model_r": float(model.mean()), "model_r_ci95": mean_ci(model)[1],
             "baselines_r": {name: float(r.mean()) for name, r in baselines.items()}, "best_baseline": best,
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half, "wins": int((gains > 0).sum()),
             "beats_best_baseline": bool(half is not None and gains.mean() - half > 0),
@@ -217,8 +211,9 @@ def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
     model = [lip_error_percent(p, c.truth) for p, c in zip(preds, clips)]
     still = [lip_error_percent(s, c.truth) for s, c in zip(stills, clips)]
     gains = np.array(still) - np.array(model)
-    half = ci95(gains)
-    return {"opening_timing": opening_timing(preds, clips), "lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
+    half = mean_ci(gains)[1]
+    return {"lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
+            "opening_timing": opening_timing(preds, clips),
             "still_mouth_percent": lip_error_percent(np.concatenate(stills), truth),
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half,
             "wins": int((gains > 0).sum()), "clips": len(clips),
