@@ -387,6 +387,8 @@ def test_interpolation_never_spans_a_cut_between_two_clips(tmp_path):
 
 
 def test_the_interpolators_paired_gain_is_a_gain_only_beyond_its_ci():
+    from scipy import stats
+
     from avatarlab.preprocess.interp.run import frame_psnr, paired_gain
 
     target = torch.full((3, 3, 4, 4), 0.5)
@@ -397,9 +399,12 @@ def test_the_interpolators_paired_gain_is_a_gain_only_beyond_its_ci():
     np.testing.assert_allclose(frame_psnr(pred, target), [20, 40, 60], atol=1e-3)
     rng = np.random.default_rng(0)
     base = rng.normal(30, 2, 40)
-    better = paired_gain(base + 0.5 + rng.normal(0, 0.1, 40), base)
+    model = base + 0.5 + rng.normal(0, 0.1, 40)
+    better = paired_gain(model, base)
     assert better["verdict"] == "better" and better["wins"] >= 38 and abs(better["mean_db"] - 0.5) < 0.05
     assert 0 < better["ci95_db"] < 0.1
+    low, high = stats.ttest_1samp(model - base, 0.0).confidence_interval(0.95)  # Student's t over the 40 frames
+    assert better["ci95_db"] == pytest.approx((high - low) / 2, rel=1e-9)
     noisy = paired_gain(base + rng.normal(0, 1.0, 40), base)
     assert noisy["verdict"] == "within the frames' spread" and noisy["ci95_db"] > abs(noisy["mean_db"])
     assert paired_gain(base - 1, base)["verdict"] == "worse"

@@ -8,7 +8,7 @@ import math
 import pytest
 
 from avatarlab.evaluate.report import build
-from avatarlab.evaluate.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
+from avatarlab.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
 
 
 def test_mean_ci_is_students_t():

@@ -12,7 +12,8 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "avatarlab"
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 #: the foundations: geometry, rendering, the head model, the network and plumbing every stage may use
-FOUNDATIONS = {"render", "headmodel", "model", "geometry", "errors", "safe_load", "provenance", "io", "config"}
+FOUNDATIONS = {"render", "headmodel", "model", "geometry", "errors", "safe_load", "provenance", "io", "config",
+               "seed_stats"}
 #: the stages and the infrastructure that runs them
 STAGES = {"preprocess", "data", "train", "evaluate", "apps", "speech", "workflow", "tracking", "entry", "dashboard",
           "cli", "schema"}

@@ -22,8 +22,8 @@ import shutil
 from pathlib import Path
 
 from avatarlab.entry import entry_point
-from avatarlab.evaluate.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
 from avatarlab.io import atomic_path
+from avatarlab.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
 
 log = logging.getLogger(__name__)
 READS = ('report',)  # the config sections this step reads (avatarlab/entry.py)

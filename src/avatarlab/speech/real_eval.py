@@ -34,10 +34,10 @@ import numpy as np
 import torch
 
 from avatarlab.entry import entry_point
-from avatarlab.evaluate.seed_stats import mean_ci
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
+from avatarlab.seed_stats import mean_ci
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
 from avatarlab.speech.lip_metrics import align_to, correlation, lip_error_percent, motion_only, mouth_opening

@@ -16,7 +16,6 @@ from pathlib import Path
 import kornia
 import numpy as np
 import torch
-from scipy import stats
 
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
@@ -25,6 +24,7 @@ from avatarlab.metrics import STLPIPS, psnr_per_image
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.preprocess.interp.training import split_variants, to_tensor
+from avatarlab.seed_stats import mean_ci
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'preprocess', 'interp', 'evaluate')  # the config sections this step reads (avatarlab/entry.py)
@@ -55,10 +55,9 @@ def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
     if len(d) < 2:
         return {"frames": len(d), "mean_db": float(d.mean()) if len(d) else None, "ci95_db": None,
                 "wins": int((d > 0).sum()), "verdict": "too few frames for a CI"}
-    low, high = stats.ttest_1samp(d, 0.0).confidence_interval(0.95)
-    verdict = "better" if low > 0 else "worse" if high < 0 else "within the frames' spread"
-    return {"frames": len(d), "mean_db": float(d.mean()), "ci95_db": float((high - low) / 2), "wins": int((d > 0).sum()),
-            "verdict": verdict}
+    mean, half, _ = mean_ci(d)
+    verdict = "better" if mean - half > 0 else "worse" if mean + half < 0 else "within the frames' spread"
+    return {"frames": len(d), "mean_db": mean, "ci95_db": half, "wins": int((d > 0).sum()), "verdict": verdict}
 
 
 @entry_point(READS)
