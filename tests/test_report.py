@@ -8,7 +8,7 @@ import math
 import pytest
 
 from avatarlab.evaluate.report import build
-from avatarlab.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
+from avatarlab.seed_stats import gain_verdict, mean_ci, paired_difference, pooled_sd, single_run_threshold
 
 
 def test_mean_ci_is_students_t():
@@ -24,6 +24,13 @@ def test_paired_difference_verdicts():
     within = paired_difference(a, {0: 20.5, 1: 20.6, 2: 22.1})  # differences +0.5, -0.4, +0.1
     assert within["exceeds_noise"] is False and within["verdict"] == "within the seed-to-seed noise"
     assert paired_difference({0: 1.0}, {0: 2.0})["exceeds_noise"] is None
+
+
+def test_a_gain_is_better_or_worse_only_beyond_its_ci():
+    assert gain_verdict(0.5, 0.4, "frames'") == "better" and gain_verdict(-0.5, 0.4, "clips'") == "worse"
+    assert gain_verdict(0.3, 0.4, "frames'") == "within the frames' spread"
+    assert gain_verdict(-0.4, 0.4, "clips'") == "within the clips' spread"  # a CI touching zero does not exclude it
+    assert gain_verdict(0.5, None, "clips'") is None and gain_verdict(None, None, "clips'") is None
 
 
 def test_pooled_sd_and_single_run_threshold():

@@ -27,6 +27,14 @@ def mean_ci(values: Iterable[float], level: float = LEVEL) -> tuple[float | None
     return float(v.mean()), float(half), int(v.size)
 
 
+def gain_verdict(mean: float | None, half: float | None, spread: str) -> str | None:
+    """'better' when a gain's CI (mean ± half) lies wholly above zero, 'worse' when wholly below, otherwise 'within
+    the <spread> spread' (e.g. spread="frames'"); None without a CI (fewer than two values)."""
+    if mean is None or half is None:
+        return None
+    return "better" if mean - half > 0 else "worse" if mean + half < 0 else f"within the {spread} spread"
+
+
 def paired_difference(a: dict[int, float], b: dict[int, float], level: float = LEVEL) -> dict:
     """b - a over the seeds both have: mean, CI half-width, n and the verdict."""
     seeds = sorted(set(a) & set(b))

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from avatarlab.entry import entry_point
 from avatarlab.io import atomic_path
-from avatarlab.seed_stats import mean_ci, paired_difference, pooled_sd, single_run_threshold
+from avatarlab.seed_stats import gain_verdict, mean_ci, paired_difference, pooled_sd, single_run_threshold
 
 log = logging.getLogger(__name__)
 READS = ('report',)  # the config sections this step reads (avatarlab/entry.py)
@@ -778,8 +778,7 @@ def speech_timing_table(results: Path) -> Table:
         if not t:
             continue
         half, gain = t["gain_ci95"], t["gain_mean_per_clip"]
-        verdict = ("missing" if half is None else "better" if gain - half > 0 else
-                   "worse" if gain + half < 0 else "within the clips' spread")
+        verdict = gain_verdict(gain, half, "clips'") or "missing"
         table.add(method=method, data=f"{r['clips']} real {speaker} clips", opening_r=t["model_r"],
                   best_baseline=t["best_baseline"], baseline_r=t["baselines_r"][t["best_baseline"]], gain_r=gain,
                   clip_gain_ci95=half, wins=f"{t['wins']}/{r['clips']}", verdict=verdict)

@@ -37,7 +37,7 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
-from avatarlab.seed_stats import mean_ci
+from avatarlab.seed_stats import gain_verdict, mean_ci
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
 from avatarlab.speech.lip_metrics import align_to, correlation, lip_error_percent, motion_only, mouth_opening
@@ -198,7 +198,7 @@ def opening_timing(preds: list[np.ndarray], clips: list[RealClip]) -> dict | Non
     return {"model_r": float(model.mean()), "model_r_ci95": mean_ci(model)[1],
             "baselines_r": {name: float(r.mean()) for name, r in baselines.items()}, "best_baseline": best,
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half, "wins": int((gains > 0).sum()),
-            "beats_best_baseline": bool(half is not None and gains.mean() - half > 0),
+            "beats_best_baseline": gain_verdict(float(gains.mean()), half, "clips'") == "better",
             "per_clip": {c.name: {"model_r": float(m), **{name: float(r[k]) for name, r in baselines.items()}}
                          for k, (c, m) in enumerate(zip(clips, model))}}
 
@@ -217,7 +217,7 @@ def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
             "still_mouth_percent": lip_error_percent(np.concatenate(stills), truth),
             "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half,
             "wins": int((gains > 0).sum()), "clips": len(clips),
-            "beats_still_mouth": bool(half is not None and gains.mean() - half > 0),
+            "beats_still_mouth": gain_verdict(float(gains.mean()), half, "clips'") == "better",
             "per_clip": {c.name: {"lip_error_percent": m, "still_mouth_percent": s}
                          for c, m, s in zip(clips, model, still)}}
 

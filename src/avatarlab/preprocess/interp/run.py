@@ -24,7 +24,7 @@ from avatarlab.metrics import STLPIPS, psnr_per_image
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.preprocess.interp.training import split_variants, to_tensor
-from avatarlab.seed_stats import mean_ci
+from avatarlab.seed_stats import gain_verdict, mean_ci
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'preprocess', 'interp', 'evaluate')  # the config sections this step reads (avatarlab/entry.py)
@@ -56,7 +56,7 @@ def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
         return {"frames": len(d), "mean_db": float(d.mean()) if len(d) else None, "ci95_db": None,
                 "wins": int((d > 0).sum()), "verdict": "too few frames for a CI"}
     mean, half, _ = mean_ci(d)
-    verdict = "better" if mean - half > 0 else "worse" if mean + half < 0 else "within the frames' spread"
+    verdict = gain_verdict(mean, half, "frames'")
     return {"frames": len(d), "mean_db": mean, "ci95_db": half, "wins": int((d > 0).sum()), "verdict": verdict}
 
 
