@@ -314,6 +314,37 @@ def test_the_interpolator_started_from_farneback_flows_is_the_farneback_baseline
         XVFILite(width=8, flow_init="raft")
 
 
+def test_pixels_with_a_still_flow_are_not_warped_and_the_length_is_chosen_on_validation(monkeypatch):
+    """still_flow_px: flow vectors shorter than it are set to zero (the frame's own pixel, no bilinear blur); the
+    pretraining keeps the candidate its validation triplets score best."""
+    from avatarlab.preprocess.interp import training
+
+    flow = torch.zeros(1, 2, 2, 2)
+    flow[0, 0, 0, 0], flow[0, 1, 0, 1], flow[0, 0, 1, 0] = 0.1, -0.3, 2.0
+    kept = XVFILite(width=8, scales=2, still_flow_px=0.25).unwarp_still(flow)
+    assert kept[0, :, 0, 0].tolist() == [0, 0] and kept[0, 1, 0, 1] == pytest.approx(-0.3) and kept[0, 0, 1, 0] == 2
+    assert torch.equal(XVFILite(width=8, scales=2).unwarp_still(flow), flow)  # 0: every pixel warped
+    # a disc moving 2 px: untrained and started from Farneback's flows, it is Farneback's frame; with a length above
+    # every flow nothing is warped, and the untrained synthesis is the cross-fade
+    yy, xx = np.mgrid[:32, :32]
+    a, b = (torch.from_numpy(((yy - 16) ** 2 + (xx - cx) ** 2 < 40).astype(np.float32)).expand(1, 3, 32, 32)
+            for cx in (15, 17))
+    with torch.no_grad():
+        moving = XVFILite(width=8, scales=2, flow_init="farneback")(a, b)
+        still = XVFILite(width=8, scales=2, flow_init="farneback", still_flow_px=100.0)(a, b)
+    np.testing.assert_allclose(still.numpy(), (0.5 * (a + b)).numpy(), atol=1e-5)
+    assert float((moving - 0.5 * (a + b)).abs().max()) > 0.1
+    # the choice: the best-scoring candidate (a score peaked at 0.5 px), in the order given
+    net = XVFILite(width=8, scales=2)
+    monkeypatch.setattr(training, "validation_psnr", lambda model, *args: 30 - (model.still_flow_px - 0.5) ** 2)
+    scores = training.choose_still_flow(net, None, np.zeros((3, 3), int), "cpu", None, [0.0, 0.25, 0.5, 1.0])
+    assert [c for c, _ in scores] == [0.0, 0.25, 0.5, 1.0] and net.still_flow_px == 0.5
+    assert training.choose_still_flow(net, None, np.zeros((0, 3), int), "cpu", None, [0.0, 0.5]) == []
+    assert net.still_flow_px == 0.0, "without validation triplets: the first candidate"
+    with pytest.raises(ValueError, match="interp.still_flow_candidates"):
+        training.choose_still_flow(net, None, np.zeros((3, 3), int), "cpu", None, [0.5, -1.0])
+
+
 def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_sees_held_out_frames(tmp_path):
     """One network for all subjects: triplets of every subject's kept frames (even indices) at strides 1 and 2,
     offset into one tensor; the saved weights load back (weights only), anything else stops with a line."""
@@ -350,18 +381,24 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert report["chosen_validation_psnr"] == max(v for _, v in report["validation_psnr_curve"])
     trained = load_interpolator(tmp_path / "out" / "model.pt")
     assert trained.width == 8 and not trained.keep_unwarped  # conf/config.yaml's default
-    net = XVFILite(width=8, scales=2, keep_unwarped=True)
+    # the still-flow length: each of conf/config.yaml's candidates scored on the validation triplets, the best kept
+    scores = report["still_flow_validation_psnr"]
+    assert [c for c, _ in scores] == [0.0, 0.25, 0.5, 1.0]
+    assert trained.still_flow_px == report["still_flow_px"] == max(scores, key=lambda cs: cs[1])[0]
+    net = XVFILite(width=8, scales=2, keep_unwarped=True, still_flow_px=0.4)
     with torch.no_grad():
         net.synthesis.keep.fill_(0.03)
     save_interpolator(tmp_path / "net.pt", net, 3)
     again = load_interpolator(tmp_path / "net.pt")
-    assert again.keep_unwarped and float(again.synthesis.keep) == pytest.approx(0.03)
+    assert again.keep_unwarped and float(again.synthesis.keep) == pytest.approx(0.03) and again.still_flow_px == 0.4
     for p, q in zip(net.parameters(), again.parameters(), strict=True):
         torch.testing.assert_close(p, q)
-    older = {k: v for k, v in torch.load(tmp_path / "net.pt", weights_only=True).items() if k != "keep_unwarped"}
-    older["state"] = XVFILite(width=8, scales=2).state_dict()  # a network saved before keep_unwarped existed
+    older = {k: v for k, v in torch.load(tmp_path / "net.pt", weights_only=True).items()
+             if k not in ("keep_unwarped", "still_flow_px")}
+    older["state"] = XVFILite(width=8, scales=2).state_dict()  # a network saved before either setting existed
     torch.save(older, tmp_path / "older.pt")
     assert not load_interpolator(tmp_path / "older.pt").keep_unwarped
+    assert load_interpolator(tmp_path / "older.pt").still_flow_px == 0.0  # every pixel warped, as it was
     torch.save({"format": "other"}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="bad.pt: not an avatarlab frame interpolator"):
         load_interpolator(tmp_path / "bad.pt")

@@ -143,6 +143,7 @@ class Interp:
     scales: int = at_least(1)
     flow_init: str = one_of("zero", "farneback")
     keep_unwarped: bool = MISSING
+    still_flow_candidates: list[float] = MISSING
     lr: float = at_least(0)
     batch: int = at_least(1)
     iterations: int = at_least(0)

@@ -12,6 +12,13 @@ resamples (blurs) the frame: on synth_talk's stillest held-out frames Farneback 
 zero, so the untrained network is still exactly the warp of its starting flows. Over seeds 0-2 it moved the held-out
 PSNR by +0.23 dB (synth_talk), -0.17 (synth_turns) and +0.03 (obama), within the seeds' spread, so it stays off.
 
+`still_flow_px` (not XVFI's): at inference, a pixel whose flow to the intermediate frame is shorter than this many
+pixels is not warped (its flow set to zero, so the synthesis sees that frame's own pixel). A warp by a flow of a
+fraction of a pixel resamples the frame bilinearly, which blurs it, while on a nearly still head such flows are
+mostly the estimate's noise: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade. The
+pretraining step chooses it among `interp.still_flow_candidates` on its validation triplets (0: every pixel warped,
+as XVFI), and it is saved with the network (docs/experiment-log.md, 2026-12-05 late).
+
 Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
 here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two
 frames, and the shared flow module refines a residual on top of them coarse to fine: with the last layers at zero the
@@ -77,11 +84,13 @@ MODEL_FORMAT = "avatarlab-interpolator-1"
 
 
 class XVFILite(nn.Module):
-    def __init__(self, width: int = 32, scales: int = 3, flow_init: str = "zero", keep_unwarped: bool = False):
+    def __init__(self, width: int = 32, scales: int = 3, flow_init: str = "zero", keep_unwarped: bool = False,
+                 still_flow_px: float = 0.0):
         super().__init__()
         if flow_init not in FLOW_INITS:
             raise ValueError(f"flow_init must be one of {FLOW_INITS}, got {flow_init!r}")
         self.scales, self.width, self.flow_init, self.keep_unwarped = scales, width, flow_init, keep_unwarped
+        self.still_flow_px = float(still_flow_px)
         self.flow = FlowModule(width)
         self.synthesis = SynthesisModule(width, keep_unwarped)
         # start as the initial flows' warp-and-average (a cross-fade for zero flows): flow residuals, occlusion logits
@@ -116,10 +125,16 @@ class XVFILite(nn.Module):
             r01, r10 = f01 - base01, f10 - base10
         return f01, f10
 
+    def unwarp_still(self, flow: torch.Tensor) -> torch.Tensor:
+        """`flow` (B,2,H,W) with the vectors shorter than `still_flow_px` set to zero (none when it is 0)."""
+        if self.still_flow_px <= 0:
+            return flow
+        return flow * (flow.norm(dim=1, keepdim=True) >= self.still_flow_px).to(flow.dtype)
+
     def forward(self, i0: torch.Tensor, i1: torch.Tensor, t: float = 0.5) -> torch.Tensor:
         """i0, i1 (B,3,H,W) in [0,1] -> the frame at time t."""
         f01, f10 = self.flows(i0, i1)
-        ft0, ft1 = flow_reversal(f01, f10, t)
+        ft0, ft1 = (self.unwarp_still(f) for f in flow_reversal(f01, f10, t))
         return self.synthesis(i0, i1, backward_warp(i0, ft0), backward_warp(i1, ft1), ft0, ft1, t)
 
 
@@ -129,7 +144,7 @@ def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
 
     with atomic_path(Path(path)) as tmp:
         torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "flow_init": model.flow_init,
-                    "keep_unwarped": model.keep_unwarped, "iterations": iterations,
+                    "keep_unwarped": model.keep_unwarped, "still_flow_px": model.still_flow_px, "iterations": iterations,
                     "state": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
 
 
@@ -141,6 +156,6 @@ def load_interpolator(path: str | Path, device: torch.device | str = "cpu") -> X
     if not isinstance(content, dict) or content.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: not an avatarlab frame interpolator (expected format {MODEL_FORMAT})")
     model = XVFILite(int(content["width"]), int(content["scales"]), str(content.get("flow_init", "zero")),
-                     bool(content.get("keep_unwarped", False)))
+                     bool(content.get("keep_unwarped", False)), float(content.get("still_flow_px", 0.0)))
     model.load_state_dict(content["state"])
     return model.eval().to(device)

@@ -21,7 +21,14 @@ from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.io import write_json
 from avatarlab.preprocess.interp.network import save_interpolator
-from avatarlab.preprocess.interp.training import split_variants, to_tensor, train, training_triplets, validation_split
+from avatarlab.preprocess.interp.training import (
+    choose_still_flow,
+    split_variants,
+    to_tensor,
+    train,
+    training_triplets,
+    validation_split,
+)
 
 log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
@@ -66,11 +73,14 @@ def train_interpolator(cfg, device) -> dict:
     data = {f"frames_{k}": Path(d) / "frames.json" for k, d in enumerate([*ip.subject_dirs, *ip.motion_dirs])}
     model, losses, chosen = train(frames, triplets, cfg, out_dir / "checkpoint.pt", device, data=data,
                                   validation=validation[:, :3], validation_groups=validation[:, 3])
+    still = choose_still_flow(model, frames, validation[:, :3], device, validation[:, 3],
+                              list(ip.still_flow_candidates))
     report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets),
               "validation_triplets": len(validation), "iterations": len(losses),
               "train_seconds": time.perf_counter() - start, "final_train_l1": float(np.mean(losses[-20:])),
               "first_train_l1": float(np.mean(losses[:20])), "validation_psnr_curve": chosen["curve"],
-              "chosen_step": chosen["best_step"], "chosen_validation_psnr": chosen["best_psnr"]}
+              "chosen_step": chosen["best_step"], "chosen_validation_psnr": chosen["best_psnr"],
+              "still_flow_px": model.still_flow_px, "still_flow_validation_psnr": still}
     save_interpolator(out_dir / "model.pt", model, len(losses))
     write_json(out_dir / "train.json", report)
     (out_dir / "checkpoint.pt").unlink(missing_ok=True)  # finished: nothing a later run could mistake for its own
@@ -88,6 +98,9 @@ def main(cfg, device) -> None:
         log.info("kept the snapshot of step %d: %.2f dB on %d validation triplets (step 0, the untrained blend of "
                  "its starting flows: %.2f dB; the last step: %.2f dB)", report["chosen_step"],
                  report["chosen_validation_psnr"], report["validation_triplets"], curve[0], curve[max(curve)])
+    if report["still_flow_validation_psnr"]:
+        log.info("pixels whose flow is shorter than %.2f px are not warped (validation PSNR by that length: %s)",
+                 report["still_flow_px"], ", ".join(f"{c:g} px {v:.2f} dB" for c, v in report["still_flow_validation_psnr"]))
 
 
 if __name__ == "__main__":

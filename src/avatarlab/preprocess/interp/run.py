@@ -88,7 +88,7 @@ def main(cfg, device) -> None:
     target = frames[held]
     perceptual = STLPIPS(device) if cfg.evaluate.st_lpips else None
     report = {"frames": len(frames), "kept_b": len(kept), "held_out": len(held), "model": str(cfg.interp.model),
-              "seconds_per_frame": seconds / len(held),
+              "still_flow_px": model.still_flow_px, "seconds_per_frame": seconds / len(held),
               "xvfi": quality(xvfi, target, perceptual), "farneback": quality(flow, target, perceptual),
               "cross_fade": quality(fade, target, perceptual),
               "paired_psnr_gain": {name: paired_gain(frame_psnr(xvfi, target), frame_psnr(pred, target))

@@ -76,6 +76,24 @@ def validation_psnr(model: XVFILite, frames: torch.Tensor, validation: np.ndarra
     return float(np.mean([10 * np.log10(1.0 / max(squared[groups == g].mean(), 1e-12)) for g in np.unique(groups)]))
 
 
+def choose_still_flow(model: XVFILite, frames: torch.Tensor, validation: np.ndarray, device: torch.device,
+                      groups: np.ndarray | None, candidates) -> list[list[float]]:
+    """Sets the model's `still_flow_px` to the candidate that scores best on the validation triplets (the first
+    candidate without validation triplets) -> [[candidate, validation PSNR], ...] (empty without them)."""
+    candidates = [float(c) for c in candidates] or [0.0]
+    if any(c < 0 for c in candidates):
+        raise ValueError(f"interp.still_flow_candidates: a flow length in pixels is >= 0, got {candidates}")
+    model.still_flow_px = candidates[0]
+    if len(validation) == 0:
+        return []
+    scores = []
+    for c in candidates:
+        model.still_flow_px = c
+        scores.append([c, validation_psnr(model, frames, validation, device, groups)])
+    model.still_flow_px = max(scores, key=lambda cs: cs[1])[0]
+    return scores
+
+
 def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
           device: torch.device = CPU, data: dict | None = None,
           validation: np.ndarray | None = None,
