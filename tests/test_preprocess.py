@@ -369,7 +369,7 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert whole[whole[:, 0] >= 9].tolist() == [[9 + i, 10 + i, 11 + i] for i in range(5)]
     cfg = step_cfg(pretrain, ["scale=smoke", f"interp.subject_dirs=[{a},{b}]", f"interp.out_dir={tmp_path / 'out'}",
                               "interp.iterations=3", "interp.width=8", "interp.scales=2",
-                              "interp.strides=[1,2]"])
+                              "interp.strides=[1,2]", "interp.still_flow_candidates=[0.0,0.25,0.5,1.0]"])
     pretrain.train_interpolator(cfg, torch.device("cpu"))
     report = json.loads((tmp_path / "out" / "train.json").read_text())
     # validation_every=5: each video's third triplet ([4, 6, 8]) chooses the snapshot, and no training triplet keeps
@@ -381,7 +381,7 @@ def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_se
     assert report["chosen_validation_psnr"] == max(v for _, v in report["validation_psnr_curve"])
     trained = load_interpolator(tmp_path / "out" / "model.pt")
     assert trained.width == 8 and not trained.keep_unwarped  # conf/config.yaml's default
-    # the still-flow length: each of conf/config.yaml's candidates scored on the validation triplets, the best kept
+    # the still-flow length: each candidate scored on the validation triplets, the best kept
     scores = report["still_flow_validation_psnr"]
     assert [c for c, _ in scores] == [0.0, 0.25, 0.5, 1.0]
     assert trained.still_flow_px == report["still_flow_px"] == max(scores, key=lambda cs: cs[1])[0]

@@ -16,8 +16,10 @@ PSNR by +0.23 dB (synth_talk), -0.17 (synth_turns) and +0.03 (obama), within the
 pixels is not warped (its flow set to zero, so the synthesis sees that frame's own pixel). A warp by a flow of a
 fraction of a pixel resamples the frame bilinearly, which blurs it, while on a nearly still head such flows are
 mostly the estimate's noise: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade. The
-pretraining step chooses it among `interp.still_flow_candidates` on its validation triplets (0: every pixel warped,
-as XVFI), and it is saved with the network (docs/experiment-log.md, 2026-12-05 late).
+pretraining step chooses it among `interp.still_flow_candidates` on its validation triplets, and it is saved with the
+network. The default candidates are [0] (every pixel warped, as XVFI): with [0, 0.25, 0.5, 1] the validation chose
+0.5 px in seeds 0-2, which lifted the synthetic subjects by 0.04-0.12 dB but cost obama (real footage, where small
+flows are partly real motion) 0.06-0.08 dB (docs/experiment-log.md, 2026-12-05 late).
 
 Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
 here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two
