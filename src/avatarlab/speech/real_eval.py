@@ -194,11 +194,11 @@ def opening_timing(preds: list[np.ndarray], clips: list[RealClip]) -> dict | Non
                  for name in clips[0].loudness}
     best = max(baselines, key=lambda name: baselines[name].mean())
     gains = model - baselines[best]
-    half = mean_ci(gains)[1]
+    mean, half, _ = mean_ci(gains)
     return {"model_r": float(model.mean()), "model_r_ci95": mean_ci(model)[1],
             "baselines_r": {name: float(r.mean()) for name, r in baselines.items()}, "best_baseline": best,
-            "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half, "wins": int((gains > 0).sum()),
-            "beats_best_baseline": gain_verdict(float(gains.mean()), half, "clips'") == "better",
+            "gain_mean_per_clip": mean, "gain_ci95": half, "wins": int((gains > 0).sum()),
+            "beats_best_baseline": gain_verdict(mean, half, "clips'") == "better",
             "per_clip": {c.name: {"model_r": float(m), **{name: float(r[k]) for name, r in baselines.items()}}
                          for k, (c, m) in enumerate(zip(clips, model))}}
 
@@ -211,13 +211,13 @@ def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
     model = [lip_error_percent(p, c.truth) for p, c in zip(preds, clips)]
     still = [lip_error_percent(s, c.truth) for s, c in zip(stills, clips)]
     gains = np.array(still) - np.array(model)
-    half = mean_ci(gains)[1]
+    mean, half, _ = mean_ci(gains)
     return {"lip_error_percent": lip_error_percent(np.concatenate(preds), truth),
             "opening_timing": opening_timing(preds, clips),
             "still_mouth_percent": lip_error_percent(np.concatenate(stills), truth),
-            "gain_mean_per_clip": float(gains.mean()), "gain_ci95": half,
+            "gain_mean_per_clip": mean, "gain_ci95": half,
             "wins": int((gains > 0).sum()), "clips": len(clips),
-            "beats_still_mouth": gain_verdict(float(gains.mean()), half, "clips'") == "better",
+            "beats_still_mouth": gain_verdict(mean, half, "clips'") == "better",
             "per_clip": {c.name: {"lip_error_percent": m, "still_mouth_percent": s}
                          for c, m, s in zip(clips, model, still)}}
 
