@@ -473,6 +473,36 @@ def test_interpolation_training_resumes_to_the_same_result(tmp_path):
     assert validation_psnr(full, frames, held, torch.device("cpu")) == pytest.approx(chosen["best_psnr"], abs=1e-4)
 
 
+def test_interpolation_training_loss_is_l1_or_the_squared_error(tmp_path):
+    """interp.loss: the first step's loss is the untrained network's mean |error| (l1, XVFI's) or mean squared error
+    (l2) on the batch the seed draws; anything else stops before training."""
+    from omegaconf import OmegaConf
+
+    from avatarlab.preprocess.interp.network import XVFILite
+    from avatarlab.preprocess.interp.training import train, training_triplets
+
+    frames = torch.rand(9, 3, 16, 16)
+    triplets = training_triplets(np.arange(0, 9, 2))
+    cfg = OmegaConf.merge(interp_config(), {"interp": {"iterations": 1, "keep_unwarped": False}})
+    rng = np.random.default_rng(0)  # the draws train() makes for its first batch
+    pick = triplets[rng.integers(0, len(triplets), 2)]
+    a, mid, b = (frames[pick[:, k]] for k in range(3))
+    if rng.random() < 0.5:
+        a, b = b, a
+    if rng.random() < 0.5:
+        a, mid, b = (x.flip(-1) for x in (a, mid, b))
+    with torch.no_grad():
+        error = XVFILite(8, 2, "farneback")(a, b, 0.5) - mid
+    firsts = {}
+    for kind in ("l1", "l2"):
+        _, losses, _ = train(frames, triplets, OmegaConf.merge(cfg, {"interp": {"loss": kind}}), tmp_path / f"{kind}.pt")
+        firsts[kind] = losses[0]
+    assert firsts["l1"] == pytest.approx(float(error.abs().mean()), rel=1e-5)
+    assert firsts["l2"] == pytest.approx(float(error.square().mean()), rel=1e-5)
+    with pytest.raises(ValueError, match="interp.loss"):
+        train(frames, triplets, OmegaConf.merge(cfg, {"interp": {"loss": "huber"}}), tmp_path / "bad.pt")
+
+
 def _rgbd_truth(head_model: HeadModel, seed: int = 3) -> dict:
     """One synthetic RGBD frame of a non-mean identity, in the layout of a synthetic subject's truth.npz."""
     rng = np.random.default_rng(seed)

@@ -77,8 +77,9 @@ def train_interpolator(cfg, device) -> dict:
                               list(ip.still_flow_candidates))
     report = {"subjects": counts, "strides": list(ip.strides), "triplets": len(triplets),
               "validation_triplets": len(validation), "iterations": len(losses),
-              "train_seconds": time.perf_counter() - start, "final_train_l1": float(np.mean(losses[-20:])),
-              "first_train_l1": float(np.mean(losses[:20])), "validation_psnr_curve": chosen["curve"],
+              "train_seconds": time.perf_counter() - start, "loss": str(ip.loss),
+              "first_train_loss": float(np.mean(losses[:20])), "final_train_loss": float(np.mean(losses[-20:])),
+              "validation_psnr_curve": chosen["curve"],
               "chosen_step": chosen["best_step"], "chosen_validation_psnr": chosen["best_psnr"],
               "still_flow_px": model.still_flow_px, "still_flow_validation_psnr": still}
     save_interpolator(out_dir / "model.pt", model, len(losses))
@@ -90,9 +91,9 @@ def train_interpolator(cfg, device) -> dict:
 @entry_point(READS)
 def main(cfg, device) -> None:
     report = train_interpolator(cfg, device)
-    log.info("frame interpolator: %d triplets of %d subjects (strides %s), %d iterations in %.0f s, train L1 "
-             "%.4f -> %.4f", report["triplets"], len(report["subjects"]), report["strides"], report["iterations"],
-             report["train_seconds"], report["first_train_l1"], report["final_train_l1"])
+    log.info("frame interpolator: %d triplets of %d subjects (strides %s), %d iterations in %.0f s, train %s "
+             "loss %.5f -> %.5f", report["triplets"], len(report["subjects"]), report["strides"], report["iterations"],
+             report["train_seconds"], report["loss"].upper(), report["first_train_loss"], report["final_train_loss"])
     if report["chosen_step"] is not None:
         curve = dict((int(k), v) for k, v in report["validation_psnr_curve"])
         log.info("kept the snapshot of step %d: %.2f dB on %d validation triplets (step 0, the untrained blend of "

@@ -146,6 +146,9 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
         score()
     iterations, every = int(cfg.interp.iterations), int(cfg.interp.checkpoint_every)
     batch = int(cfg.interp.batch)
+    loss_kind = str(cfg.interp.get("loss", "l1"))
+    if loss_kind not in ("l1", "l2"):
+        raise ValueError(f"interp.loss must be l1 or l2, got {loss_kind!r}")
     with tqdm(total=iterations, initial=step, desc="xvfi", unit="it", disable=None) as bar:
         while step < iterations and len(triplets):
             pick = triplets[rng.integers(0, len(triplets), batch)]
@@ -156,7 +159,8 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
                 a, mid, b = (x.flip(-1) for x in (a, mid, b))
             optim.zero_grad()
             with autocast(device, amp):
-                loss = (model(a, b, 0.5).float() - mid).abs().mean()
+                error = model(a, b, 0.5).float() - mid
+                loss = error.square().mean() if loss_kind == "l2" else error.abs().mean()
             scaler.scale(loss).backward()
             scaler.step(optim)
             scaler.update()
