@@ -435,7 +435,7 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     torch.save({"model": model.state_dict(), "kind": "lstm", "n_features": 65, "channels": 8, "hidden": 16,
                 "phoneme_head": True}, path)
     cfg = step_cfg(real_eval, ["scale=smoke", f"speech.real_clips=[{','.join(map(str, clips))}]",
-                               f"speech.real_models=[{path}]", "speech.adapt_epochs=2"])
+                               f"speech.real_models=[{path}]", "speech.adapt_epochs=2", "speech.adapt_seeds=2"])
     report = real_eval.run(cfg)
     assert report["skipped"] == [str(clips[-1])]
     by_name = {c["clip"]: c for c in report["clips"]}
@@ -458,6 +458,15 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
             assert r["gain_mean_per_clip"] == pytest.approx(np.mean(gains))
             assert r["beats_still_mouth"] == (r["gain_mean_per_clip"] - r["gain_ci95"] > 0)
         assert rows["adapted_other_clips"]["lip_error_percent"] != rows["synthetic"]["lip_error_percent"]
+        assert "fine_tuning_seeds" not in rows["synthetic"]  # nothing fine-tuned, nothing to repeat
+        for key in ("adapted_other_clips", "adapted_other_speakers"):  # two fine-tuning seeds: the row is the first
+            spread = rows[key]["fine_tuning_seeds"]
+            assert spread["seeds"] == 2 and spread["gain_mean_per_clip"][0] == rows[key]["gain_mean_per_clip"]
+            assert spread["lip_error_percent"][0] == rows[key]["lip_error_percent"]
+            assert spread["gain_mean_per_clip"][1] != spread["gain_mean_per_clip"][0], "a second seed, a new fine-tune"
+            assert spread["beats_still_mouth"] == sum(g - h > 0 for g, h in zip(spread["gain_mean_per_clip"],
+                                                                                 spread["gain_ci95"]))
+            assert len(spread["opening_r"]) == 2 and spread["opening_r"][0] == rows[key]["opening_timing"]["model_r"]
         for r in rows.values():  # the opening's timing beside loudness, on the same clips
             t = r["opening_timing"]
             assert set(t["per_clip"]) == set(r["per_clip"]) and -1 <= t["model_r"] <= 1
@@ -477,6 +486,11 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     first = speakers["grid"]["synthetic"]
     assert real_rows[0]["data"] == "2 real grid clips" and real_rows[0]["baseline_iod"] == first["still_mouth_percent"]
     assert real_rows[0]["gain_iod"] == pytest.approx(first["still_mouth_percent"] - first["lip_error_percent"])
+    assert real_rows[0]["fine_tuning_seeds"] is None  # as trained: one model, no fine-tuning seeds
+    tuned = speakers["grid"]["adapted_other_clips"]["fine_tuning_seeds"]
+    low, high = sorted(tuned["gain_mean_per_clip"])
+    assert real_rows[1]["fine_tuning_seeds"] == (f"{low:+.2f} to {high:+.2f} over 2 seeds, "
+                                                 f"{tuned['beats_still_mouth']} beyond the CI")
     from avatarlab.evaluate.report import speech_timing_table
 
     timing_rows = speech_timing_table(tmp_path / "results").rows

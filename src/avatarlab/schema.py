@@ -318,6 +318,7 @@ class Speech:
     adapt_epochs: int = at_least(0)
     adapt_lr: float = at_least(0)
     adapt_repeats: int = at_least(1)
+    adapt_seeds: int = at_least(1)
     real_clips_per_speaker: Optional[int] = at_least(1)
 
 

@@ -35,6 +35,12 @@ def gain_verdict(mean: float | None, half: float | None, spread: str) -> str | N
     return "better" if mean - half > 0 else "worse" if mean + half < 0 else f"within the {spread} spread"
 
 
+def signed_range(values: Iterable[float]) -> str:
+    """'+0.04 to +0.10': the smallest and the largest of signed values (e.g. a gain over seeds)."""
+    v = list(values)
+    return f"{min(v):+.2f} to {max(v):+.2f}"
+
+
 def paired_difference(a: dict[int, float], b: dict[int, float], level: float = LEVEL) -> dict:
     """b - a over the seeds both have: mean, CI half-width, n and the verdict."""
     seeds = sorted(set(a) & set(b))

@@ -37,7 +37,7 @@ from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json
 from avatarlab.preprocess.landmarks import detect_landmarks
-from avatarlab.seed_stats import gain_verdict, mean_ci
+from avatarlab.seed_stats import gain_verdict, mean_ci, signed_range
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
 from avatarlab.speech.lip_metrics import align_to, correlation, lip_error_percent, motion_only, mouth_opening
@@ -222,25 +222,47 @@ def compare(preds: list[np.ndarray], clips: list[RealClip]) -> dict:
                          for c, m, s in zip(clips, model, still)}}
 
 
+SEED_STRIDE = 10_000  # fine-tuning seed m of clip k: seed + k + m * SEED_STRIDE (m = 0: the headline's)
+
+
+def seed_spread(rows: list[dict]) -> dict:
+    """One adapted row's compare() per fine-tuning seed -> the spread of its gain over the still mouth and of its
+    opening r, and in how many seeds the gain is beyond its CI."""
+    timing = [r["opening_timing"] for r in rows]
+    return {"seeds": len(rows), "gain_mean_per_clip": [r["gain_mean_per_clip"] for r in rows],
+            "gain_ci95": [r["gain_ci95"] for r in rows],
+            "lip_error_percent": [r["lip_error_percent"] for r in rows],
+            "beats_still_mouth": sum(bool(r["beats_still_mouth"]) for r in rows),
+            "opening_r": None if any(t is None for t in timing) else [t["model_r"] for t in timing]}
+
+
 def evaluate_model(model: AudioToVisemes, clips: list[RealClip], sp, seed: int) -> dict:
-    """The three rows (synthetic, adapted on the other clips, adapted on the other speakers) per speaker."""
+    """The three rows (synthetic, adapted on the other clips, adapted on the other speakers) per speaker. The adapted
+    rows are fine-tuned `speech.adapt_seeds` times; the first seed's predictions are the row, and with more than one
+    the row's `fine_tuning_seeds` gives every seed's gain (`seed_spread`): a fine-tune's luck is not a model's gain."""
     speakers = sorted({c.speaker for c in clips})
     synthetic = {c.name: predict(model, c) for c in clips}
     adapting = int(sp.adapt_epochs) > 0 and len(clips) > 1
-    other_clips = ({c.name: predict(adapt(model, [o for o in clips if o is not c], sp, seed + k), c)[0]
-                    for k, c in enumerate(clips)} if adapting else {})
-    other_speakers = {}
-    for k, speaker in enumerate(speakers if adapting and len(speakers) > 1 else []):
-        tuned = adapt(model, [o for o in clips if o.speaker != speaker], sp, seed + 1000 + k)
-        other_speakers.update({c.name: predict(tuned, c)[0] for c in clips if c.speaker == speaker})
+    seeds = range(int(sp.get("adapt_seeds", 1)) if adapting else 0)
+    other_clips = [{c.name: predict(adapt(model, [o for o in clips if o is not c], sp, seed + k + m * SEED_STRIDE),
+                                    c)[0] for k, c in enumerate(clips)} for m in seeds]
+    other_speakers = []
+    for m in seeds if len(speakers) > 1 else []:
+        preds = {}
+        for k, speaker in enumerate(speakers):
+            tuned = adapt(model, [o for o in clips if o.speaker != speaker], sp, seed + 1000 + k + m * SEED_STRIDE)
+            preds.update({c.name: predict(tuned, c)[0] for c in clips if c.speaker == speaker})
+        other_speakers.append(preds)
     out = {}
     for speaker in speakers:
         mine = [c for c in clips if c.speaker == speaker]
         rows = {"synthetic": compare([synthetic[c.name][0] for c in mine], mine)}
-        if other_clips:
-            rows["adapted_other_clips"] = compare([other_clips[c.name] for c in mine], mine)
-        if other_speakers:
-            rows["adapted_other_speakers"] = compare([other_speakers[c.name] for c in mine], mine)
+        for key, runs in (("adapted_other_clips", other_clips), ("adapted_other_speakers", other_speakers)):
+            if runs:
+                per_seed = [compare([run[c.name] for c in mine], mine) for run in runs]
+                rows[key] = per_seed[0]
+                if len(per_seed) > 1:
+                    rows[key]["fine_tuning_seeds"] = seed_spread(per_seed)
         labelled = [(synthetic[c.name][1], c.labels) for c in mine if c.labels is not None]
         if labelled and labelled[0][0] is not None:
             rows["synthetic"]["phoneme_accuracy_vs_alignment"] = float(
@@ -285,7 +307,7 @@ def run(cfg) -> dict:
                          "word_start_error_ms": c.word_start_error_ms} for c in clips],
               "skipped": skipped, "models": {},
               "adaptation": {"epochs": int(sp.adapt_epochs), "lr": float(sp.adapt_lr),
-                             "repeats": int(sp.adapt_repeats)},
+                             "repeats": int(sp.adapt_repeats), "seeds": int(sp.get("adapt_seeds", 1))},
               "truth": "dlib 68 landmarks aligned to the neutral face on brows, nose and eyes, 25 fps; motion only "
                        "(each clip's mean shape is the truth's)",
               "published_seed_000_grid_percent": 1.9}
@@ -300,6 +322,11 @@ def run(cfg) -> dict:
                 log.info("%s on %s (%d clips), %s: lip motion error %.2f %% IOD vs still mouth %.2f %% (gain per "
                          "clip %+.2f%s, %d/%d wins)", name, speaker, r["clips"], row, r["lip_error_percent"],
                          r["still_mouth_percent"], r["gain_mean_per_clip"], ci, r["wins"], r["clips"])
+                if "fine_tuning_seeds" in r:
+                    spread = r["fine_tuning_seeds"]
+                    log.info("%s on %s, %s over %d fine-tuning seeds: gain per clip %s, beyond its CI in %d",
+                             name, speaker, row, spread["seeds"], signed_range(spread["gain_mean_per_clip"]),
+                             spread["beats_still_mouth"])
                 timing = r["opening_timing"]
                 if timing is not None:
                     ci = "" if timing["gain_ci95"] is None else f" +- {timing['gain_ci95']:.2f}"
