@@ -768,7 +768,8 @@ def seed_spread_text(spread: dict | None) -> str | None:
     """'+0.04 to +0.10 over 3 seeds, 0 beyond the CI' for a fine-tuned real-clip row (None for one seed)."""
     if not spread:
         return None
-    return f"{signed_range(spread['gain_mean_per_clip'])} over {spread['seeds']} seeds, {spread['beats_still_mouth']} beyond the CI"
+    return (f"{signed_range(spread['gain_mean_per_clip'])} over {spread['seeds']} seeds, "
+            f"{spread['beats_still_mouth']} beyond the CI")
 
 
 def speech_timing_table(results: Path) -> Table:
