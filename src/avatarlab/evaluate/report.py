@@ -735,8 +735,9 @@ def speech_table(results: Path, scale: str) -> Table:
                   "the audio models as trained and fine-tuned on the real clips' own audio with the scored clip (or "
                   "its whole speaker) left out; clip_gain_ci95: the 95 % CI half-width of the per-clip paired gain "
                   "over the still mouth, wins: clips where the model beats it. A gain is one only when it exceeds "
-                  "its CI. fine_tuning_seeds: the fine-tuned rows' gain over the still mouth in every fine-tuning "
-                  "seed (speech.adapt_seeds; the row is the first), and in how many it exceeds its CI.")
+                  "its CI. fine_tuning_seeds: the fine-tuned rows' per-clip mean gain over the still mouth (the "
+                  "gain clip_gain_ci95 belongs to) in every fine-tuning seed (speech.adapt_seeds; the row is the "
+                  "first), and in how many seeds it exceeds its CI.")
     for row in PUBLISHED_SPEECH:
         table.add(source="published", data="GRID", **row)
     for key, label in SPEECH_MODELS.items():
