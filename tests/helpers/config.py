@@ -22,5 +22,5 @@ def step_cfg(module, overrides: list[str] | None = None):
 def interp_config(**extra):
     """A small interpolation-training config (8 channels, 2 scales, 6 steps of batch 2, checkpoints every 3)."""
     return OmegaConf.create({"seed": 0, "interp": {"width": 8, "scales": 2, "flow_init": "farneback",
-                                                   "keep_unwarped": True, "lr": 1e-3, "batch": 2, "iterations": 6,
-                                                   "checkpoint_every": 3}, **extra})
+                                                   "keep_unwarped": True, "loss": "l1", "lr": 1e-3, "batch": 2,
+                                                   "iterations": 6, "checkpoint_every": 3}, **extra})

@@ -243,7 +243,7 @@ def evaluate_model(model: AudioToVisemes, clips: list[RealClip], sp, seed: int) 
     speakers = sorted({c.speaker for c in clips})
     synthetic = {c.name: predict(model, c) for c in clips}
     adapting = int(sp.adapt_epochs) > 0 and len(clips) > 1
-    seeds = range(int(sp.get("adapt_seeds", 1)) if adapting else 0)
+    seeds = range(int(sp.adapt_seeds) if adapting else 0)
     other_clips = [{c.name: predict(adapt(model, [o for o in clips if o is not c], sp, seed + k + m * SEED_STRIDE),
                                     c)[0] for k, c in enumerate(clips)} for m in seeds]
     other_speakers = []
@@ -307,7 +307,7 @@ def run(cfg) -> dict:
                          "word_start_error_ms": c.word_start_error_ms} for c in clips],
               "skipped": skipped, "models": {},
               "adaptation": {"epochs": int(sp.adapt_epochs), "lr": float(sp.adapt_lr),
-                             "repeats": int(sp.adapt_repeats), "seeds": int(sp.get("adapt_seeds", 1))},
+                             "repeats": int(sp.adapt_repeats), "seeds": int(sp.adapt_seeds)},
               "truth": "dlib 68 landmarks aligned to the neutral face on brows, nose and eyes, 25 fps; motion only "
                        "(each clip's mean shape is the truth's)",
               "published_seed_000_grid_percent": 1.9}

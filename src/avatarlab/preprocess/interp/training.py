@@ -148,7 +148,7 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
         score()
     iterations, every = int(cfg.interp.iterations), int(cfg.interp.checkpoint_every)
     batch = int(cfg.interp.batch)
-    loss_kind = str(cfg.interp.get("loss", "l1"))
+    loss_kind = str(cfg.interp.loss)
     if loss_kind not in ("l1", "l2"):
         raise ValueError(f"interp.loss must be l1 or l2, got {loss_kind!r}")
     with tqdm(total=iterations, initial=step, desc="xvfi", unit="it", disable=None) as bar:
