@@ -345,6 +345,45 @@ def test_pixels_with_a_still_flow_are_not_warped_and_the_length_is_chosen_on_val
         training.choose_still_flow(net, None, np.zeros((3, 3), int), "cpu", None, [0.5, -1.0])
 
 
+def test_the_still_flow_length_is_chosen_per_subject_on_its_kept_frames_only(tmp_path):
+    """The interpolation step chooses `still_flow_px` among interp.subject_still_flow_candidates on the subject's own
+    triplets of kept frames (0, 2, 4 -> predict 2 from 0 and 4, ...): the best-scoring length is used and reported, a
+    held-out frame never changes the choice, and [] keeps the length the network was saved with."""
+    from helpers import fake_video_subject, step_cfg
+    from PIL import Image
+
+    from avatarlab.preprocess.interp import run
+    from avatarlab.preprocess.interp.network import save_interpolator
+
+    folder = fake_video_subject(tmp_path / "s", count=13, size=32)
+    save_interpolator(tmp_path / "net.pt", XVFILite(width=8, scales=2, flow_init="farneback", still_flow_px=0.7), 0)
+    base = ["scale=smoke", f"preprocess.subject_dir={folder}", f"interp.model={tmp_path / 'net.pt'}",
+            "evaluate.st_lpips=false"]
+    report = run.interpolate_subject(step_cfg(run, [*base, "interp.subject_still_flow_candidates=[0.0,100.0]"]),
+                                     torch.device("cpu"))
+    scores = dict(report["still_flow_subject_psnr"])
+    assert list(scores) == [0.0, 100.0] and report["still_flow_px_saved"] == 0.7
+    assert report["still_flow_px"] == max(scores, key=scores.get)
+    assert json.loads((folder / "interp.json").read_text())["still_flow_px"] == report["still_flow_px"]
+    # 100 px warps nothing: the untrained network is the cross-fade, scored on the kept triplets' middle frames
+    frames = np.stack([np.asarray(Image.open(f), np.float64) / 255 for f in sorted((folder / "frames").glob("*.png"))])
+    left, middle, right = frames[0:9:2], frames[2:11:2], frames[4:13:2]
+    assert scores[100.0] == pytest.approx(10 * np.log10(1 / np.mean(((left + right) / 2 - middle) ** 2)), abs=0.01)
+    # the held-out (odd) frames replaced by black: the choice and its scores are the same, the held-out scores not
+    for k in range(1, 13, 2):
+        Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(folder / "frames" / f"{k:06d}.png")
+    again = run.interpolate_subject(step_cfg(run, [*base, "interp.subject_still_flow_candidates=[0.0,100.0]"]),
+                                    torch.device("cpu"))
+    assert again["still_flow_subject_psnr"] == report["still_flow_subject_psnr"]
+    assert again["xvfi"]["psnr"] != report["xvfi"]["psnr"]
+    kept_saved = run.interpolate_subject(step_cfg(run, [*base, "interp.subject_still_flow_candidates=[]"]),
+                                         torch.device("cpu"))
+    assert kept_saved["still_flow_px"] == 0.7 and kept_saved["still_flow_subject_psnr"] == []
+    with pytest.raises(ValueError, match="interp.subject_still_flow_candidates"):
+        run.interpolate_subject(step_cfg(run, [*base, "interp.subject_still_flow_candidates=[-1.0]"]),
+                                torch.device("cpu"))
+
+
 def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_sees_held_out_frames(tmp_path):
     """One network for all subjects: triplets of every subject's kept frames (even indices) at strides 1 and 2,
     offset into one tensor; the saved weights load back (weights only), anything else stops with a line."""

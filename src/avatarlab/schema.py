@@ -144,6 +144,7 @@ class Interp:
     flow_init: str = one_of("zero", "farneback")
     keep_unwarped: bool = MISSING
     still_flow_candidates: list[float] = MISSING
+    subject_still_flow_candidates: list[float] = MISSING
     loss: str = one_of("l1", "l2")
     lr: float = at_least(0)
     batch: int = at_least(1)

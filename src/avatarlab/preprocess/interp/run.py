@@ -6,6 +6,13 @@ re-created by interpolation. The XVFI-style network is the one trained once on e
 removed frames, and the Farneback baseline and a plain cross-fade do the same. Interpolation PSNR/SSIM are measured
 on the removed (held-out) frames. Writes `interp.json`, `interpolated.npz` (variant (c)'s new frames) and a
 comparison PNG.
+
+Before it interpolates, the step chooses the network's still-flow length (`still_flow_px`: flows shorter than it are
+not warped) for this subject among `interp.subject_still_flow_candidates`, on the subject's own triplets of kept
+frames (the frames variant (b) keeps, neighbours 4 apart: never a held-out frame). One length for every video had
+been a trade: 0.5 px lifted the synthetic subjects, whose small flows are noise on a still head, and cost obama,
+whose small flows are partly a real drift (docs/experiment-log.md, 2026-12-05 late); chosen per subject, each keeps
+its gain (2026-12-06).
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.metrics import STLPIPS, psnr_per_image
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
-from avatarlab.preprocess.interp.training import split_variants, to_tensor
+from avatarlab.preprocess.interp.training import choose_still_flow, split_variants, to_tensor, training_triplets
 from avatarlab.seed_stats import gain_verdict, mean_ci
 
 log = logging.getLogger(__name__)
@@ -60,8 +67,23 @@ def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
     return {"frames": len(d), "mean_db": mean, "ci95_db": half, "wins": int((d > 0).sum()), "verdict": verdict}
 
 
-@entry_point(READS)
-def main(cfg, device) -> None:
+def choose_subject_still_flow(model, frames: torch.Tensor, kept: np.ndarray, clips, candidates,
+                               device) -> list[list[float]]:
+    """Sets `model.still_flow_px` to the candidate that scores best on the subject's triplets of kept frames
+    (neighbours one kept frame apart, inside one clip) -> [[candidate, PSNR], ...]; without candidates or triplets,
+    [] and the network keeps the length it was saved with."""
+    triplets = training_triplets(kept, (1,), clips)
+    if not len(candidates) or not len(triplets):
+        return []
+    scores = choose_still_flow(model, frames, triplets, device, None, candidates,
+                               name="interp.subject_still_flow_candidates")
+    model.eval()  # validation_psnr leaves it in training mode
+    return scores
+
+
+def interpolate_subject(cfg, device) -> dict:
+    """The step on `preprocess.subject_dir`: writes interp.json, interpolated.npz and the comparison PNG -> the
+    report."""
     subject_dir = Path(cfg.preprocess.subject_dir)
     subject = SubjectDir(subject_dir)
     frames_np = subject.frames()
@@ -72,12 +94,15 @@ def main(cfg, device) -> None:
         log.warning("%s: no interpolation experiment: %s", subject.frames_json, reason)
         write_interpolated(subject_dir, held, np.zeros((0, *frames_np.shape[1:]), np.uint8), kept)
         write_png(subject_dir / "interp_comparison.png", frames_np[0])
-        write_json(subject_dir / "interp.json", {"frames": len(frames), "kept_b": len(kept), "held_out": 0,
-                                                 "model": str(cfg.interp.model), "skipped": reason,
-                                                 "xvfi": None, "farneback": None, "cross_fade": None,
-                                                 "paired_psnr_gain": None})
-        return
+        skipped = {"frames": len(frames), "kept_b": len(kept), "held_out": 0, "model": str(cfg.interp.model),
+                   "skipped": reason, "xvfi": None, "farneback": None, "cross_fade": None, "paired_psnr_gain": None}
+        write_json(subject_dir / "interp.json", skipped)
+        return skipped
+    clips = subject.frame_clips()
     model = load_interpolator(cfg.interp.model, device)
+    saved_still = model.still_flow_px
+    still_choice = choose_subject_still_flow(model, frames, kept, clips,
+                                             list(cfg.interp.subject_still_flow_candidates), device)
     start = time.perf_counter()
     with torch.no_grad():
         xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).cpu()
@@ -88,7 +113,8 @@ def main(cfg, device) -> None:
     target = frames[held]
     perceptual = STLPIPS(device) if cfg.evaluate.st_lpips else None
     report = {"frames": len(frames), "kept_b": len(kept), "held_out": len(held), "model": str(cfg.interp.model),
-              "still_flow_px": model.still_flow_px, "seconds_per_frame": seconds / len(held),
+              "still_flow_px": model.still_flow_px, "still_flow_px_saved": saved_still,
+              "still_flow_subject_psnr": still_choice, "seconds_per_frame": seconds / len(held),
               "xvfi": quality(xvfi, target, perceptual), "farneback": quality(flow, target, perceptual),
               "cross_fade": quality(fade, target, perceptual),
               "paired_psnr_gain": {name: paired_gain(frame_psnr(xvfi, target), frame_psnr(pred, target))
@@ -101,6 +127,11 @@ def main(cfg, device) -> None:
                            1) for k in show]
     write_png(subject_dir / "interp_comparison.png", np.concatenate(rows, 0))
     write_json(subject_dir / "interp.json", report)
+    if still_choice:
+        log.info("pixels whose flow is shorter than %.2f px are not warped: chosen on this subject's %d triplets of "
+                 "kept frames (PSNR by that length: %s)", model.still_flow_px,
+                 len(training_triplets(kept, (1,), clips)),
+                 ", ".join(f"{c:g} px {v:.2f} dB" for c, v in still_choice))
     log.info("interpolation on %d held-out frames: XVFI-style PSNR %.2f dB SSIM %.4f | Farneback %.2f / %.4f | "
              "cross-fade %.2f / %.4f (the shared network %s)", len(held), report["xvfi"]["psnr"],
              report["xvfi"]["ssim"], report["farneback"]["psnr"], report["farneback"]["ssim"],
@@ -109,6 +140,12 @@ def main(cfg, device) -> None:
         log.info("XVFI-style over %s per frame: %+.2f dB +- %s, %d of %d frames won: %s", name, gain["mean_db"],
                  "n/a" if gain["ci95_db"] is None else f"{gain['ci95_db']:.2f}", gain["wins"], gain["frames"],
                  gain["verdict"])
+    return report
+
+
+@entry_point(READS)
+def main(cfg, device) -> None:
+    interpolate_subject(cfg, device)
 
 
 if __name__ == "__main__":

@@ -77,12 +77,14 @@ def validation_psnr(model: XVFILite, frames: torch.Tensor, validation: np.ndarra
 
 
 def choose_still_flow(model: XVFILite, frames: torch.Tensor, validation: np.ndarray, device: torch.device,
-                      groups: np.ndarray | None, candidates) -> list[list[float]]:
+                      groups: np.ndarray | None, candidates,
+                      name: str = "interp.still_flow_candidates") -> list[list[float]]:
     """Sets the model's `still_flow_px` to the candidate that scores best on the validation triplets (the first
-    candidate without validation triplets) -> [[candidate, validation PSNR], ...] (empty without them)."""
+    candidate without validation triplets) -> [[candidate, validation PSNR], ...] (empty without them). `name`: the
+    setting the candidates come from, for the error."""
     candidates = [float(c) for c in candidates] or [0.0]
     if any(c < 0 for c in candidates):
-        raise ValueError(f"interp.still_flow_candidates: a flow length in pixels is >= 0, got {candidates}")
+        raise ValueError(f"{name}: a flow length in pixels is >= 0, got {candidates}")
     model.still_flow_px = candidates[0]
     if len(validation) == 0:
         return []
