@@ -19,7 +19,10 @@ mostly the estimate's noise: on synth_talk's stillest held-out frames Farneback 
 pretraining step chooses it among `interp.still_flow_candidates` on its validation triplets, and it is saved with the
 network. The default candidates are [0] (every pixel warped, as XVFI): with [0, 0.25, 0.5, 1] the validation chose
 0.5 px in seeds 0-2, which lifted the synthetic subjects by 0.04-0.12 dB but cost obama (real footage, where small
-flows are partly real motion) 0.06-0.08 dB (docs/experiment-log.md, 2026-12-05 late).
+flows are partly real motion) 0.06-0.08 dB (docs/experiment-log.md, 2026-12-05 late). So the interpolation step
+(`interp/run.py`) chooses the length again for each subject, on that subject's own kept frames
+(`interp.subject_still_flow_candidates`, [0, 0.25, 0.5, 1] by default): over seeds 0-2 it chose 1 px for synth_talk,
+0.5 px for synth_turns and 0 for obama in every seed (2026-12-06).
 
 Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
 here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two
