@@ -30,7 +30,13 @@ from avatarlab.io import atomic_path, write_json, write_png
 from avatarlab.metrics import STLPIPS, psnr_per_image
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
-from avatarlab.preprocess.interp.training import choose_still_flow, split_variants, to_tensor, training_triplets
+from avatarlab.preprocess.interp.training import (
+    choose_still_flow,
+    flow_lengths,
+    split_variants,
+    to_tensor,
+    training_triplets,
+)
 from avatarlab.seed_stats import gain_verdict, mean_ci
 
 log = logging.getLogger(__name__)
@@ -72,11 +78,11 @@ def choose_subject_still_flow(model, frames: torch.Tensor, kept: np.ndarray, cli
     """Sets `model.still_flow_px` to the candidate that scores best on the subject's triplets of kept frames
     (neighbours one kept frame apart, inside one clip) -> [[candidate, PSNR], ...]; without candidates or triplets,
     [] and the network keeps the length it was saved with."""
-    triplets = training_triplets(kept, (1,), clips)
-    if not len(candidates) or not len(triplets):
+    name = "interp.subject_still_flow_candidates"
+    candidates, triplets = flow_lengths(candidates, name), training_triplets(kept, (1,), clips)
+    if not candidates or not len(triplets):
         return []
-    scores = choose_still_flow(model, frames, triplets, device, None, candidates,
-                               name="interp.subject_still_flow_candidates")
+    scores = choose_still_flow(model, frames, triplets, device, None, candidates, name=name)
     model.eval()  # validation_psnr leaves it in training mode
     return scores
 

@@ -76,15 +76,21 @@ def validation_psnr(model: XVFILite, frames: torch.Tensor, validation: np.ndarra
     return float(np.mean([10 * np.log10(1.0 / max(squared[groups == g].mean(), 1e-12)) for g in np.unique(groups)]))
 
 
+def flow_lengths(candidates, name: str) -> list[float]:
+    """Still-flow candidates as floats; a negative length stops with a line naming the setting `name`."""
+    lengths = [float(c) for c in candidates]
+    if any(c < 0 for c in lengths):
+        raise ValueError(f"{name}: a flow length in pixels is >= 0, got {lengths}")
+    return lengths
+
+
 def choose_still_flow(model: XVFILite, frames: torch.Tensor, validation: np.ndarray, device: torch.device,
                       groups: np.ndarray | None, candidates,
                       name: str = "interp.still_flow_candidates") -> list[list[float]]:
     """Sets the model's `still_flow_px` to the candidate that scores best on the validation triplets (the first
     candidate without validation triplets) -> [[candidate, validation PSNR], ...] (empty without them). `name`: the
     setting the candidates come from, for the error."""
-    candidates = [float(c) for c in candidates] or [0.0]
-    if any(c < 0 for c in candidates):
-        raise ValueError(f"{name}: a flow length in pixels is >= 0, got {candidates}")
+    candidates = flow_lengths(candidates, name) or [0.0]
     model.still_flow_px = candidates[0]
     if len(validation) == 0:
         return []
