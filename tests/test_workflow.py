@@ -273,6 +273,8 @@ def test_report(smoke_run):
     with open(report / "tables/preprocessing.csv") as f:
         interp_rows = [r for r in csv.DictReader(f) if r["interp_xvfi_psnr"] not in ("", "missing")]
     assert interp_rows and all(float(r["interp_gain_vs_crossfade_ci95"]) > 0 for r in interp_rows)
+    # the still-flow length each subject's step chose among conf/config.yaml's candidates
+    assert all(float(r["interp_still_flow_px"]) in (0.0, 0.25, 0.5, 1.0) for r in interp_rows)
     with open(report / "tables/renderer_experiment.csv") as f:
         renderers = list(csv.DictReader(f))
     assert all(float(r["eval_st_lpips"]) >= 0 and float(r["eval_best_baseline_st_lpips"]) >= 0 for r in renderers)

@@ -239,13 +239,14 @@ def preprocessing_table(results: Path) -> Table:
                    "interp_xvfi_psnr", "interp_farneback_psnr", "interp_crossfade_psnr", "interp_xvfi_st_lpips",
                    "interp_farneback_st_lpips", "interp_crossfade_st_lpips", "interp_gain_vs_farneback_db",
                    "interp_gain_vs_farneback_ci95", "interp_gain_vs_crossfade_db", "interp_gain_vs_crossfade_ci95",
-                   "interp_frames_won_vs_crossfade"],
+                   "interp_frames_won_vs_crossfade", "interp_still_flow_px"],
                   "Errors against ground truth exist only for synthetic subjects; RGBD only where depth exists "
                   "(synthetic). RGBD accuracy = sqrt(Loss3), the dissertation reports 0.2 mm on its stereo data. "
                   "The interpolation columns put the XVFI-style network beside its two baselines (Farneback flow, "
                   "cross-fade) on the same held-out frames (only those between two frames of one clip); the gains "
                   "are its mean per-frame PSNR gain over each baseline with the 95 % CI over frames: a gain is one "
-                  "only when it exceeds its CI.")
+                  "only when it exceeds its CI. interp_still_flow_px: flows shorter than it were not warped, the "
+                  "length chosen for the subject on its own kept frames.")
     for folder in sorted(p for p in (results / "subjects").glob("*") if (p / "fit_rgb.json").is_file()):
         lm, masks, fit = (read_json(folder / f) or {} for f in ("landmarks.json", "masks.json", "fit_rgb.json"))
         rgbd, interp = read_json(folder / "fit_rgbd.json") or {}, read_json(folder / "interp.json") or {}
@@ -262,12 +263,14 @@ def preprocessing_table(results: Path) -> Table:
 
 
 def _interp_gains(interp: dict) -> dict:
-    """The preprocessing table's paired columns from an interp.json (missing for one written before them)."""
+    """The preprocessing table's paired columns and the still-flow length from an interp.json (missing for one
+    written before them)."""
     paired = interp.get("paired_psnr_gain") or {}
     flow, fade = paired.get("farneback") or {}, paired.get("cross_fade") or {}
     return {"interp_gain_vs_farneback_db": flow.get("mean_db"), "interp_gain_vs_farneback_ci95": flow.get("ci95_db"),
             "interp_gain_vs_crossfade_db": fade.get("mean_db"), "interp_gain_vs_crossfade_ci95": fade.get("ci95_db"),
-            "interp_frames_won_vs_crossfade": (f"{fade['wins']}/{fade['frames']}" if fade else None)}
+            "interp_frames_won_vs_crossfade": (f"{fade['wins']}/{fade['frames']}" if fade else None),
+            "interp_still_flow_px": interp.get("still_flow_px")}
 
 
 PRETRAIN_COLUMNS = ["model", "iterations", "seconds", "samples_per_second", "psnr_head", "mean_colour_psnr_head",
