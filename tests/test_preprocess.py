@@ -512,6 +512,10 @@ def test_interpolation_training_resumes_to_the_same_result(tmp_path):
     assert chosen["best_psnr"] == max(v for _, v in chosen["curve"])
     assert len({round(v, 6) for _, v in chosen["curve"]}) > 1, "training moved the network"
     assert validation_psnr(full, frames, held, torch.device("cpu")) == pytest.approx(chosen["best_psnr"], abs=1e-4)
+    for mode in (True, False):  # scoring leaves the network in the mode it found it in
+        full.train(mode)
+        validation_psnr(full, frames, held, torch.device("cpu"))
+        assert full.training is mode
 
 
 def test_interpolation_training_loss_is_l1_or_the_squared_error(tmp_path):

@@ -82,9 +82,7 @@ def choose_subject_still_flow(model, frames: torch.Tensor, kept: np.ndarray, cli
     candidates, triplets = flow_lengths(candidates, name), training_triplets(kept, (1,), clips)
     if not candidates or not len(triplets):
         return []
-    scores = choose_still_flow(model, frames, triplets, device, None, candidates, name=name)
-    model.eval()  # validation_psnr leaves it in training mode
-    return scores
+    return choose_still_flow(model, frames, triplets, device, None, candidates, name=name)
 
 
 def interpolate_subject(cfg, device) -> dict:

@@ -64,7 +64,9 @@ def validation_split(triplets: np.ndarray, every: int) -> tuple[np.ndarray, np.n
 def validation_psnr(model: XVFILite, frames: torch.Tensor, validation: np.ndarray, device: torch.device,
                     groups: np.ndarray | None = None) -> float:
     """The mean over groups (videos) of the PSNR over each group's validation triplets' middle frames (one mean
-    squared error per group), so a hard video's large errors do not decide alone; the network in eval mode."""
+    squared error per group), so a hard video's large errors do not decide alone; the network in eval mode, then
+    back in the mode it was in."""
+    training = model.training
     model.eval()
     groups = np.zeros(len(validation), int) if groups is None else np.asarray(groups)
     squared = np.zeros(len(validation))
@@ -72,7 +74,7 @@ def validation_psnr(model: XVFILite, frames: torch.Tensor, validation: np.ndarra
         pick = validation[k:k + 8]
         a, mid, b = (frames[pick[:, j]].to(device) for j in range(3))
         squared[k:k + 8] = ((model(a, b, 0.5).float() - mid) ** 2).flatten(1).mean(1).cpu().numpy()
-    model.train()
+    model.train(training)
     return float(np.mean([10 * np.log10(1.0 / max(squared[groups == g].mean(), 1e-12)) for g in np.unique(groups)]))
 
 
