@@ -383,7 +383,7 @@ def test_the_still_flow_length_is_chosen_per_subject_on_its_kept_frames_only(tmp
         run.interpolate_subject(step_cfg(run, [*base, "interp.subject_still_flow_candidates=[-1.0]"]),
                                 torch.device("cpu"))
     with pytest.raises(ValueError, match="interp.subject_still_flow_candidates"):  # even with nothing to choose on
-        run.choose_subject_still_flow(None, None, np.array([0, 2]), None, [0.5, -1.0], "cpu")
+        run.choose_subject_still_flow(None, None, np.zeros((0, 3), int), [0.5, -1.0], "cpu")
 
 
 def test_the_interpolator_learns_from_every_video_at_several_speeds_and_never_sees_held_out_frames(tmp_path):

@@ -73,13 +73,13 @@ def paired_gain(model: np.ndarray, baseline: np.ndarray) -> dict:
     return {"frames": len(d), "mean_db": mean, "ci95_db": half, "wins": int((d > 0).sum()), "verdict": verdict}
 
 
-def choose_subject_still_flow(model, frames: torch.Tensor, kept: np.ndarray, clips, candidates,
+def choose_subject_still_flow(model, frames: torch.Tensor, triplets: np.ndarray, candidates,
                                device) -> list[list[float]]:
-    """Sets `model.still_flow_px` to the candidate that scores best on the subject's triplets of kept frames
-    (neighbours one kept frame apart, inside one clip) -> [[candidate, PSNR], ...]; without candidates or triplets,
-    [] and the network keeps the length it was saved with."""
+    """Sets `model.still_flow_px` to the candidate that scores best on the subject's `triplets` of kept frames
+    -> [[candidate, PSNR], ...]; without candidates or triplets, [] and the network keeps the length it was saved
+    with."""
     name = "interp.subject_still_flow_candidates"
-    candidates, triplets = flow_lengths(candidates, name), training_triplets(kept, (1,), clips)
+    candidates = flow_lengths(candidates, name)
     if not candidates or not len(triplets):
         return []
     return choose_still_flow(model, frames, triplets, device, None, candidates, name=name)
@@ -92,7 +92,8 @@ def interpolate_subject(cfg, device) -> dict:
     subject = SubjectDir(subject_dir)
     frames_np = subject.frames()
     frames = to_tensor(frames_np)
-    kept, held = split_variants(len(frames), subject.frame_clips())
+    clips = subject.frame_clips()
+    kept, held = split_variants(len(frames), clips)
     if len(held) == 0:  # e.g. a few frames over many clips: nothing to score, and variant (c) adds nothing
         reason = f"none of its {len(frames)} frames lies between two frames of one clip"
         log.warning("%s: no interpolation experiment: %s", subject.frames_json, reason)
@@ -102,11 +103,10 @@ def interpolate_subject(cfg, device) -> dict:
                    "skipped": reason, "xvfi": None, "farneback": None, "cross_fade": None, "paired_psnr_gain": None}
         write_json(subject_dir / "interp.json", skipped)
         return skipped
-    clips = subject.frame_clips()
+    own = training_triplets(kept, (1,), clips)  # neighbours one kept frame apart, inside one clip
     model = load_interpolator(cfg.interp.model, device)
     saved_still = model.still_flow_px
-    still_choice = choose_subject_still_flow(model, frames, kept, clips,
-                                             list(cfg.interp.subject_still_flow_candidates), device)
+    still_choice = choose_subject_still_flow(model, frames, own, list(cfg.interp.subject_still_flow_candidates), device)
     start = time.perf_counter()
     with torch.no_grad():
         xvfi = torch.cat([model(frames[held - 1][k:k + 8].to(device), frames[held + 1][k:k + 8].to(device)).cpu()
@@ -133,8 +133,7 @@ def interpolate_subject(cfg, device) -> dict:
     write_json(subject_dir / "interp.json", report)
     if still_choice:
         log.info("pixels whose flow is shorter than %.2f px are not warped: chosen on this subject's %d triplets of "
-                 "kept frames (PSNR by that length: %s)", model.still_flow_px,
-                 len(training_triplets(kept, (1,), clips)),
+                 "kept frames (PSNR by that length: %s)", model.still_flow_px, len(own),
                  ", ".join(f"{c:g} px {v:.2f} dB" for c, v in still_choice))
     log.info("interpolation on %d held-out frames: XVFI-style PSNR %.2f dB SSIM %.4f | Farneback %.2f / %.4f | "
              "cross-fade %.2f / %.4f (the shared network %s)", len(held), report["xvfi"]["psnr"],
