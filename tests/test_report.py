@@ -83,7 +83,8 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
     assert "alpha2 minus alpha1, paired by seed" in readme
     claims = (out / "tables" / "claims.md").read_text()
     # beta6 (26.10 dB) is first but only 0.05 dB above beta2: within the seed noise (pooled SD ~0.15 dB)
-    assert "within noise: beta6 ties the best" in claims and "synth_talk: beta6_from_alpha2 26.10 dB" in claims
+    assert "margin +0.05 dB) | best trivial baseline 25.00 dB |" in claims and "| within noise |" in claims
+    assert "synth_talk: beta6_from_alpha2 26.10 dB" in claims
     assert "rank 1 of 4" in claims and "synth_turns: beta6" not in claims and "20.00 dB" not in claims
     assert "not testable: the INSTA videos" in claims
 

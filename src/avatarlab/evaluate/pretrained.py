@@ -23,9 +23,10 @@ from avatarlab.evaluate import baselines
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.headmodel import load_head_model
 from avatarlab.io import write_json, write_png
-from avatarlab.metrics import STLPIPS, lpips_metric
+from avatarlab.metrics import STLPIPS, lpips_metric, psnr_per_image
 from avatarlab.model.head_nerf import assemble_codes, load_model_file, render_in_chunks
 from avatarlab.model.losses import composite
+from avatarlab.seed_stats import mean_ci
 from avatarlab.tracking import log_to_run
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,10 @@ def score_pretrained(net, size: int, cfg, device) -> tuple[dict, torch.Tensor]:
     model = image_scores(pred, target, masks, perceptual)
     base = {name: image_scores(p, target, masks, perceptual) for name, p in predictions.items()}
     grid = torch.cat([torch.cat(list(row[:6]), 2) for row in (target, pred, predictions["nearest"])], 1)
+    # the spread of the model's PSNR over the held-out samples: the noise of its absolute level (evaluate/claims.py)
+    psnr_ci95 = mean_ci(psnr_per_image(pred, target).tolist())[1]
     return {"model": model, "baselines": base, "gain": gains(model, base), "samples": int(ev.samples),
+            "psnr_ci95": psnr_ci95,
             "baseline_pool": len(pool_images), "image_size": size}, grid
 
 

@@ -12,8 +12,9 @@ import logging
 import sys
 from pathlib import Path
 
-from avatarlab.evaluate.report import Table, save_figure
+from avatarlab.evaluate.report import save_figure
 from avatarlab.evaluate.scoring import LOWER_IS_BETTER
+from avatarlab.evaluate.table import Table
 from avatarlab.io import atomic_path
 from avatarlab.seed_stats import mean_ci, pooled_sd, single_run_threshold
 from avatarlab.workflow.sweeps import SEED_KEY, Sweep, load_sweep

@@ -1,0 +1,57 @@
+"""A report table: named columns, rows of values, written as CSV and Markdown; a number a run could not measure is
+written "missing", never filled in."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+from avatarlab.io import atomic_path
+
+MISSING = "missing"
+
+
+def fmt(value, digits: int = 4):
+    if value is None:
+        return MISSING
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+class Table:
+    def __init__(self, name: str, title: str, columns: list[str], note: str = ""):
+        self.name, self.title, self.columns, self.note, self.rows = name, title, columns, note, []
+
+    def add(self, **row):
+        self.rows.append(row)
+
+    def csv(self) -> str:
+        out = io.StringIO()
+        writer = csv.DictWriter(out, self.columns, extrasaction="ignore")
+        writer.writeheader()
+        for row in self.rows:
+            writer.writerow({c: "" if row.get(c) is None else row.get(c) for c in self.columns})
+        return out.getvalue()
+
+    def markdown(self) -> str:
+        lines = [f"### {self.title}", ""]
+        if self.note:
+            lines += [self.note, ""]
+        lines += ["| " + " | ".join(self.columns) + " |", "|" + "---|" * len(self.columns)]
+        for row in self.rows:
+            lines.append("| " + " | ".join(fmt(row.get(c)) for c in self.columns) + " |")
+        if not self.rows:
+            lines.append("| " + " | ".join(["(no runs)"] + [""] * (len(self.columns) - 1)) + " |")
+        return "\n".join(lines) + "\n"
+
+    def write(self, folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        for suffix, text in ((".csv", self.csv()), (".md", self.markdown())):
+            with atomic_path(folder / f"{self.name}{suffix}") as tmp:
+                tmp.write_text(text)
+
+
+def read_json(path: Path):
+    return json.loads(path.read_text()) if path.is_file() else None
