@@ -41,9 +41,13 @@ cluster:
 	@{ [ "$$(id -u)" = 0 ] && cluster/local_cluster.sh install; } || \
 	  echo "note: SLURM / PostgreSQL are not installed; the cluster tests will be skipped"
 
-# the whole reproduction at $(SCALE), then Snakemake's HTML report beside results/$(SCALE)/report/README.md
+# the whole reproduction at $(SCALE); then its results card (results/$(SCALE)/report/RESULTS.md: provenance, step
+# times, headline tables) and Snakemake's HTML report beside results/$(SCALE)/report/README.md
+START := results/.main_$(SCALE).start
 main: setup system
+	@mkdir -p results && { [ -d results/$(SCALE) ] && state=resumed || state=fresh; echo "$$(date +%s) $$state" > $(START); }
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE)
+	$(BIN)/python -m avatarlab.evaluate.results_card --results results/$(SCALE) --start $(START)
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html
 
