@@ -3,6 +3,7 @@
     python benchmarks/bench_pretrain.py [--scale tiny] [--iterations 20] [--threads 2] [--amp | --no-amp]
     python benchmarks/bench_pretrain.py --processes 2 --threads 1   # the workflow's way: two one-thread jobs at once
     python benchmarks/bench_pretrain.py --mlp-precision bfloat16     # the CNeRF MLP alone in bfloat16
+    python benchmarks/bench_pretrain.py --against bcd0053 --rounds 3  # today's training step beside a commit's
 
 Prints, at the scale's sizes and in one process:
 - samples/s of a training step as pretraining runs it (alpha: every sample synthetic, so the head-model renders
@@ -14,14 +15,21 @@ Prints, at the scale's sizes and in one process:
 - frames/s of rendering an image (inference) at the scale's size and at 128x128.
 With --processes N: N processes measure the training step at the same time and the summed samples/s is printed
 (what `snakemake --cores 2` gets from two one-thread training jobs).
+With --against COMMIT: that commit is checked out into a temporary git worktree, and its own benchmark script (on its
+own code and its own config of the scale) and today's measure the training step in turns, one process at a time,
+alternating which goes first, --rounds times; the median samples/s of each and their ratio are printed. A speed-up is
+only ever such a ratio: two codes on one machine in one sitting.
 Timings are the median over repeats; the machine is shared, so compare figures of one run with each other.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -117,8 +125,13 @@ def main() -> None:
     parser.add_argument("--mlp-precision", choices=("float32", "bfloat16"), default=None,
                         help="the CNeRF MLP's training precision (default: the config's model.mlp_precision)")
     parser.add_argument("--processes", type=int, default=1, help="measure the training step in N processes at once")
+    parser.add_argument("--against", metavar="COMMIT", help="measure that commit's training step beside today's")
+    parser.add_argument("--rounds", type=int, default=3, help="with --against: alternating runs of each")
     parser.add_argument("--step-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.against:
+        side_by_side(args)
+        return
     if args.processes > 1:
         concurrent_training(args)
         return
@@ -177,6 +190,74 @@ def concurrent_training(args) -> None:
         rates.append(float(out.strip().splitlines()[-1].split()[-1]))
     print(f"scale {args.scale}: {args.processes} processes x {args.threads} thread(s) at once: "
           f"{sum(rates):.1f} samples/s in all ({', '.join(f'{r:.1f}' for r in rates)} each)")
+
+
+ROOT = Path(__file__).resolve().parents[1]
+RATE = re.compile(r"training step: .*?([0-9.]+) samples/s")
+
+
+def git(*words: str, cwd: Path = ROOT) -> str:
+    return subprocess.run(["git", *words], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def step_rate(tree: Path, args, today: bool) -> float:
+    """samples/s of one run of `tree`'s own benchmark script on `tree`'s own code (PYTHONPATH first)."""
+    command = [sys.executable, str(tree / "benchmarks" / "bench_pretrain.py"), "--scale", args.scale,
+               "--threads", str(args.threads), "--iterations", str(args.iterations)] + (["--step-only"] if today else [])
+    env = dict(os.environ, PYTHONPATH=str(tree / "src"))
+    out = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
+    if out.returncode:
+        raise SystemExit(f"{tree}: its benchmark failed (exit {out.returncode}): {out.stderr.strip()[-400:]}")
+    found = RATE.search(out.stdout) or re.search(r"samples/s ([0-9.]+)", out.stdout)
+    if not found:
+        raise SystemExit(f"{tree}: its benchmark printed no training-step rate")
+    return float(found.group(1))
+
+
+def imported_from(tree: Path) -> str:
+    return subprocess.run([sys.executable, "-c", "import avatarlab; print(avatarlab.__file__)"], cwd=tree,
+                          env=dict(os.environ, PYTHONPATH=str(tree / "src")), capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def side_by_side(args) -> None:
+    """Today's training step and `args.against`'s, measured in turns on this machine; prints medians and the ratio."""
+    old_commit = git("rev-parse", "--verify", f"{args.against}^{{commit}}")
+    today = git("rev-parse", "HEAD") + (" (with uncommitted changes)" if git("status", "--porcelain", "--", "src")
+                                          else "")
+    with tempfile.TemporaryDirectory(prefix="bench_against_") as tmp:
+        old_tree = Path(tmp) / "old"
+        git("worktree", "add", "--detach", str(old_tree), old_commit)
+        try:
+            for tree in (old_tree, ROOT):
+                where = imported_from(tree)
+                if not where.startswith(str(tree)):
+                    raise SystemExit(f"{tree}: avatarlab was imported from {where}, not from this tree")
+            rates: dict[str, list[float]] = {"old": [], "today": []}
+            for k in range(args.rounds):
+                order = [("old", old_tree), ("today", ROOT)]
+                for label, tree in order if k % 2 == 0 else order[::-1]:
+                    rates[label].append(step_rate(tree, args, label == "today"))
+                    print(f"round {k + 1}: {label} {rates[label][-1]:.1f} samples/s", flush=True)
+        finally:
+            git("worktree", "remove", "--force", str(old_tree))
+    old, new = statistics.median(rates["old"]), statistics.median(rates["today"])
+    print(f"machine: {cpu_model()}; {args.threads} thread(s), scale {args.scale}, {args.rounds} alternating rounds")
+    print(f"{old_commit[:7]}: {old:.1f} samples/s (median of {', '.join(f'{r:.1f}' for r in rates['old'])})")
+    print(f"{today[:7]}{today[40:]}: {new:.1f} samples/s (median of {', '.join(f'{r:.1f}' for r in rates['today'])})")
+    print(f"speed-up {new / old:.2f}x (today / {old_commit[:7]}, same machine, same sitting)")
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or platform.machine()
 
 
 if __name__ == "__main__":
