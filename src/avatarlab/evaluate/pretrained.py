@@ -52,9 +52,10 @@ def evaluate_pretrained(cfg, device) -> dict:
 
 
 @torch.no_grad()
-def score_pretrained(net, size: int, cfg, device) -> tuple[dict, torch.Tensor]:
+def score_pretrained(net, size: int, cfg, device, real_pool: bool = True) -> tuple[dict, torch.Tensor]:
     """A network's scores and its baselines' on the held-out renders (sections head_model, render, synthetic,
-    evaluate of `cfg`) -> report, image grid (truth, model, nearest baseline)."""
+    evaluate of `cfg`) -> report, image grid (truth, model, nearest baseline). `real_pool=False`: the baselines'
+    pool holds training draws only, not the real image set's images (a test's stand-in set of noise images)."""
     ev = cfg.evaluate
     head = load_head_model(cfg.head_model)
     generator = SyntheticGenerator(head, real_params(Path(ev.real_subject_dir)), cfg.synthetic, size,
@@ -62,7 +63,8 @@ def score_pretrained(net, size: int, cfg, device) -> tuple[dict, torch.Tensor]:
     test = generator.sample(int(ev.samples), torch.Generator().manual_seed(10_000 + int(cfg.seed)))
     pool = generator.sample(int(ev.baseline_pool), torch.Generator().manual_seed(20_000 + int(cfg.seed)))
     real = RealImageSet(ev.real_subject_dir, size)
-    pick = torch.randperm(len(real), generator=torch.Generator().manual_seed(int(cfg.seed)))[: int(ev.baseline_pool)]
+    pick = torch.randperm(len(real), generator=torch.Generator().manual_seed(int(cfg.seed)))[
+        : int(ev.baseline_pool) if real_pool else 0]
     pool_images = torch.cat([pool["images"].cpu(), real.images[pick]])
     pool_masks = torch.cat([pool["masks"].cpu(), real.masks[pick]])
     cams = [pool["camera"].to("cpu"), real.camera(pick)]
