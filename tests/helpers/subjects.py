@@ -55,3 +55,26 @@ def tiny_model_overrides() -> list[str]:
 
 def torch_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     return all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+
+
+def rendered_video_subject(folder: Path, frames: int = 48, size: int = 32, preset: str = "talking", seed: int = 1):
+    """A video subject as preprocessing would leave it, from a synthetic video of the head model with its truth as the
+    fit (frames, masks, landmarks and parameters agree exactly): data a model can learn from."""
+    from avatarlab.data import synthetic_subject
+    from helpers.config import step_cfg
+
+    cfg = step_cfg(synthetic_subject, ["scale=smoke", f"subject.frames={frames}", f"subject.video_size={size}",
+                                       f"subject.preset={preset}", f"subject.seed={seed}"])
+    truth = synthetic_subject.render_subject(cfg)
+    (folder / "frames").mkdir(parents=True)
+    names = [f"{i:06d}.png" for i in range(frames)]
+    for name, image in zip(names, truth["video"]):
+        Image.fromarray(image).save(folder / "frames" / name)
+    (folder / "frames.json").write_text(json.dumps({"files": names, "count": frames, "size": size,
+                                                    "sources": ["video.mp4"] * frames}))
+    np.savez(folder / "masks.npz", masks=truth["masks"])
+    np.savez(folder / "fit_rgb.npz", shape=truth["shape"], texture=truth["texture"], lighting=truth["lighting"],
+             expression=truth["expression"], pose=truth["pose"], K=truth["K"], R=truth["R"], t=truth["t"],
+             fitted=np.ones(frames, bool), image_size=size)
+    np.savez(folder / "landmarks.npz", points=truth["landmarks2d"], found=np.ones(frames, bool))
+    return folder
