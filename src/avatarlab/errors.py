@@ -13,4 +13,9 @@ class InputError(ValueError):
     """Input data a step cannot use (too few frames, no face, ...); names the subject and the file."""
 
 
-USER_ERRORS = (InputFileError, ConfigError, InputError)
+class TrainingError(ValueError):
+    """Training that cannot go on (a loss that is not finite); names the step's output, the iteration and the last
+    checkpoint kept."""
+
+
+USER_ERRORS = (InputFileError, ConfigError, InputError, TrainingError)

@@ -25,11 +25,14 @@ def load_tensors(path: str | Path, what: str = "a checkpoint", map_location="cpu
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         if "weights_only" in str(err) or "Unsupported global" in str(err):
             reason = "it holds Python objects other than tensors and plain values (refused: loading could run code)"
-        raise InputFileError(f"{path}: cannot be read as {what}: {reason}") from None
+        hint = "; delete it to start that step over" if what.endswith("checkpoint") else ""
+        raise InputFileError(f"{path}: cannot be read as {what}: {reason}{hint}") from None
 
 
-def load_arrays(path: str | Path, keys: tuple[str, ...] = (), what: str = "arrays") -> dict[str, np.ndarray]:
-    """np.load of a .npz (or .npy, as key 'array') with allow_pickle=False; every key in `keys` must be present."""
+def load_arrays(path: str | Path, keys: tuple[str, ...] = (), what: str = "arrays",
+                finite: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """np.load of a .npz (or .npy, as key 'array') with allow_pickle=False; every key in `keys` must be present, and
+    every number of the keys in `finite` finite (no NaN or infinity)."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: no such file ({what} expected)")
@@ -50,4 +53,9 @@ def load_arrays(path: str | Path, keys: tuple[str, ...] = (), what: str = "array
     missing = [k for k in keys if k not in arrays]
     if missing:
         raise InputFileError(f"{path}: not {what}: missing {', '.join(missing)}")
+    for key in finite:
+        values = arrays.get(key)
+        if values is not None and values.dtype.kind in "fc" and not np.isfinite(values).all():
+            bad = int((~np.isfinite(values)).sum())
+            raise InputFileError(f"{path}: not {what}: '{key}' holds {bad} value(s) that are NaN or infinite")
     return arrays

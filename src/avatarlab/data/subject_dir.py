@@ -83,7 +83,7 @@ class SubjectDir:
     def fit(self, per_frame: bool = True) -> dict[str, np.ndarray]:
         """The fitted parameters; with `per_frame`, shared vectors (a video's one shape, texture, lighting) are
         repeated for every frame so that every array has one row per frame."""
-        fit = load_arrays(self.fit_file, FIT_KEYS + ("image_size",), "an RGB fit")
+        fit = load_arrays(self.fit_file, FIT_KEYS + ("image_size",), "an RGB fit", finite=FIT_KEYS)
         if per_frame:
             n = len(fit["fitted"])
             for key, dims in SHARED_FIT_KEYS.items():

@@ -5,19 +5,28 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from pathlib import Path
 
 from avatarlab.io import atomic_path
 
 MISSING = "missing"
+NOT_FINITE = "not finite"  # a NaN or an infinity is shown as what it is, never as a number
 
 
 def fmt(value, digits: int = 4):
     if value is None:
         return MISSING
     if isinstance(value, float):
-        return f"{value:.{digits}f}"
+        return f"{value:.{digits}f}" if math.isfinite(value) else NOT_FINITE
     return str(value)
+
+
+def cell(value):
+    """A CSV cell: empty for a number not measured, "not finite" for a NaN or an infinity, else the value."""
+    if value is None:
+        return ""
+    return NOT_FINITE if isinstance(value, float) and not math.isfinite(value) else value
 
 
 class Table:
@@ -32,7 +41,7 @@ class Table:
         writer = csv.DictWriter(out, self.columns, extrasaction="ignore")
         writer.writeheader()
         for row in self.rows:
-            writer.writerow({c: "" if row.get(c) is None else row.get(c) for c in self.columns})
+            writer.writerow({c: cell(row.get(c)) for c in self.columns})
         return out.getvalue()
 
     def markdown(self) -> str:

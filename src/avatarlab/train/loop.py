@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from avatarlab.config import autocast, grad_scaler
 from avatarlab.data.batches import Batch, BatchSource, BatchStream
 from avatarlab.data.schedule import Schedule
+from avatarlab.errors import TrainingError
 from avatarlab.model.head_nerf import HeadNeRFModel, assemble_codes
 from avatarlab.model.losses import composite, head_model_loss
 from avatarlab.train.checkpoint import Checkpoint
@@ -217,6 +218,12 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
             for group, base in zip(optim.param_groups, base_lrs):
                 group["lr"] = base * factor
             entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device)
+            if not math.isfinite(entry["loss"]):
+                kept = (f"the last checkpoint, of iteration {int(checkpoint.load_step())}, is kept in {checkpoint.path}"
+                        if checkpoint.path.is_file() else "no checkpoint was written yet")
+                raise TrainingError(f"{checkpoint.path.parent}: training stopped at iteration {step + 1} of "
+                                    f"{recipe.schedule.N}: the loss is {entry['loss']} (not finite; an input may hold a "
+                                    f"NaN or an infinity, or the learning rate is too high); {kept}")
             step += 1
             if ema is not None:
                 ema.update(net)

@@ -1,0 +1,76 @@
+"""Faults and hostile input, round 3: each case of the probe as a user meets it (docs/troubleshooting.md lists them)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from helpers import fake_video_subject, step_cfg
+from helpers.subjects import tiny_model_overrides
+
+from avatarlab.data.subject_dir import SubjectDir
+from avatarlab.errors import InputFileError, TrainingError
+from avatarlab.safe_load import load_tensors
+
+
+@pytest.mark.parametrize("key, index, value", [("expression", (0, 2), math.nan), ("shape", (0,), math.inf),
+                                               ("pose", (1, 4), -math.inf)])
+def test_a_nan_or_infinity_in_a_fit_stops_its_reader_naming_the_file_and_key(tmp_path, key, index, value):
+    subject = fake_video_subject(tmp_path / "s", count=4)
+    with np.load(subject / "fit_rgb.npz") as f:
+        fit = {k: f[k].copy() for k in f.files}
+    fit[key][index] = value
+    np.savez(subject / "fit_rgb.npz", **fit)
+    with pytest.raises(InputFileError) as err:
+        SubjectDir(subject).fit()
+    assert str(err.value) == (f"{subject / 'fit_rgb.npz'}: not an RGB fit: '{key}' holds 1 value(s) that are NaN or "
+                              "infinite")
+
+
+def test_a_loss_that_is_not_finite_stops_training_at_its_iteration_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
+    from helpers import fake_real_set
+
+    from avatarlab.train import loop, pretrain
+
+    fake_real_set(tmp_path / "real")
+    cfg = step_cfg(pretrain, tiny_model_overrides() + ["strategy=alpha1", "pretrain.iterations=6",
+                                                       "pretrain.checkpoint_every=2",
+                                                       f"pretrain.real_subject_dir={tmp_path / 'real'}",
+                                                       f"pretrain.out_dir={tmp_path / 'alpha1'}"])
+    real_step, calls = loop.train_step, {"n": 0}
+
+    def poisoned(*args, **kw):
+        calls["n"] += 1
+        entry = real_step(*args, **kw)
+        return {**entry, "loss": math.nan} if calls["n"] == 5 else entry
+
+    monkeypatch.setattr(loop, "train_step", poisoned)
+    with pytest.raises(TrainingError) as err:
+        pretrain.pretrain_model(cfg, torch.device("cpu"))
+    checkpoint = tmp_path / "alpha1" / "checkpoint.pt"
+    assert str(err.value).startswith(f"{tmp_path / 'alpha1'}: training stopped at iteration 5 of 6: the loss is nan")
+    assert f"the last checkpoint, of iteration 4, is kept in {checkpoint}" in str(err.value)
+    assert load_tensors(checkpoint)["step"] == 4 and not (tmp_path / "alpha1" / "model.pt").exists()
+
+
+def test_a_half_written_checkpoint_says_how_to_start_over(tmp_path):
+    bad = tmp_path / "checkpoint.pt"
+    torch.save({"step": 3, "model": {"w": torch.zeros(1000)}}, bad)
+    bad.write_bytes(bad.read_bytes()[:200])
+    with pytest.raises(InputFileError) as err:
+        load_tensors(bad, "a training checkpoint")
+    assert str(err.value).startswith(f"{bad}: cannot be read as a training checkpoint: ")
+    assert str(err.value).endswith("; delete it to start that step over") and "\n" not in str(err.value)
+
+
+def test_a_report_shows_no_nan_as_a_number():
+    from avatarlab.evaluate.table import Table
+
+    table = Table("t", "t", ["name", "psnr"])
+    table.add(name="a", psnr=math.nan)
+    table.add(name="b", psnr=None)
+    table.add(name="c", psnr=-math.inf)
+    assert "nan" not in table.markdown().lower().replace("name", "") and "inf" not in table.csv()
+    assert table.markdown().count("not finite") == 2 and "| b | missing |" in table.markdown()
+    assert table.csv().splitlines()[1:] == ["a,not finite", "b,", "c,not finite"]
