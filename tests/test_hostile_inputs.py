@@ -74,3 +74,36 @@ def test_a_report_shows_no_nan_as_a_number():
     assert "nan" not in table.markdown().lower().replace("name", "") and "inf" not in table.csv()
     assert table.markdown().count("not finite") == 2 and "| b | missing |" in table.markdown()
     assert table.csv().splitlines()[1:] == ["a,not finite", "b,", "c,not finite"]
+
+
+def plan_config(**subjects) -> dict:
+    import yaml
+    from helpers import REPO
+
+    config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
+    config.update(scale="smoke", subjects={"synth_talk": {"source": "synthetic", "preset": "talking", "seed": 1},
+                                           **subjects})
+    return config
+
+
+def test_a_subject_named_like_the_real_image_set_is_refused_before_any_job():
+    from avatarlab.workflow.targets import Plan
+
+    with pytest.raises(ValueError, match="'subjects': 'portraits' is the real image set's name"):
+        Plan(plan_config(portraits={"source": "video", "path": "/tmp/me.mp4"}))
+
+
+def test_subject_files_whose_names_snakemake_cannot_carry_are_named_at_planning(tmp_path):
+    import os
+
+    from avatarlab.workflow.targets import Plan
+
+    (tmp_path / "odd").mkdir()
+    with open(os.path.join(os.fsencode(tmp_path / "odd"), b"clip\xff.mp4"), "wb"):
+        pass
+    with pytest.raises(ValueError, match=r"subject 'me': the file name '.*clip\\\\xff.mp4' is not UTF-8; rename"):
+        Plan(plan_config(me={"source": "video", "path": str(tmp_path / "odd" / "*.mp4")}))
+    (tmp_path / "braces").mkdir()
+    (tmp_path / "braces" / "take{1}.mp4").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"the file name '.*take\{1\}.mp4' holds a brace"):
+        Plan(plan_config(me={"source": "video", "path": str(tmp_path / "braces" / "*.mp4")}))

@@ -65,6 +65,20 @@ def available_subjects(subjects: dict, note=None) -> dict:
     return kept
 
 
+def check_input_names(subject: str, paths: list[str]) -> None:
+    """A subject's input files must have names the workflow can carry: UTF-8 (Snakemake writes them into its
+    locks) and without braces (Snakemake reads {...} in a path as a wildcard). Raises ValueError naming the file."""
+    for path in paths:
+        try:
+            path.encode("utf-8")
+        except UnicodeEncodeError:
+            shown = path.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+            raise ValueError(f"subject '{subject}': the file name {shown!r} is not UTF-8; rename the file") from None
+        if "{" in path or "}" in path:
+            raise ValueError(f"subject '{subject}': the file name {path!r} holds a brace, which Snakemake reads as a "
+                             "wildcard; rename the file") from None
+
+
 @dataclass(frozen=True)
 class ResolutionTier:
     """The final recipe's model continued at a higher resolution (seed 002, section 2.4: "300 000 iterations for
@@ -98,7 +112,12 @@ class Plan:
         clash = sorted(set(self.motion_videos) & (set(self.subjects) | {self.real_images["name"]}))
         if clash:
             raise ValueError(f"workflow config 'interp_motion_videos': {clash[0]} is also a subject; name it apart")
+        if self.real_images["name"] in self.subjects:
+            raise ValueError(f"workflow config 'subjects': {self.real_images['name']!r} is the real image set's name "
+                             "(real_images.name); name the subject apart")
         self.all_subjects = {**self.subjects, self.real_images["name"]: self.real_images, **self.motion_videos}
+        for name in self.all_subjects:
+            check_input_names(name, self.subject_inputs(name))
         self.synthetic = [n for n, s in self.subjects.items() if s["source"] == "synthetic"]
         self.image_sets = [n for n, s in self.all_subjects.items() if s["source"] in ("portraits", "images")]
         self.videos = [n for n in self.subjects if n not in self.image_sets]  # what the interpolator learns from
