@@ -107,3 +107,39 @@ def test_subject_files_whose_names_snakemake_cannot_carry_are_named_at_planning(
     (tmp_path / "braces" / "take{1}.mp4").write_bytes(b"")
     with pytest.raises(ValueError, match=r"the file name '.*take\{1\}.mp4' holds a brace"):
         Plan(plan_config(me={"source": "video", "path": str(tmp_path / "braces" / "*.mp4")}))
+
+
+def test_a_truncated_mpg_whose_container_declares_no_count_stops_naming_the_file(tmp_path):
+    from helpers import SHARED_DATA
+
+    from avatarlab.errors import InputError
+    from avatarlab.preprocess.frames import read_video
+
+    clips = sorted((SHARED_DATA / "grid").glob("*.mpg")) if SHARED_DATA else []
+    if not clips:
+        pytest.skip("no GRID clips in the shared data")
+    frames, _ = read_video(clips[0], None, None)
+    assert len(frames) == 75, "an intact clip passes the stream check"
+    half = tmp_path / "half.mpg"
+    half.write_bytes(clips[0].read_bytes()[: clips[0].stat().st_size // 2])
+    with pytest.raises(InputError) as err:
+        read_video(half, None, None)
+    assert str(err.value).startswith(f"{half}: the video stream is damaged or cut off (ffmpeg: ")
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (31, 200)])
+def test_an_image_too_small_to_hold_a_face_is_refused_by_name(tmp_path, size):
+    import cv2
+
+    from avatarlab.errors import InputError
+    from avatarlab.preprocess.frames import MIN_SIDE, load_frames
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.full((64, 64, 3), 128, np.uint8))
+    cv2.imwrite(str(folder / "tiny.png"), np.full((size[1], size[0], 3), 128, np.uint8))
+    with pytest.raises(InputError) as err:
+        load_frames([folder], None, None)
+    assert str(err.value) == (f"{folder / 'tiny.png'}: the image is {size[0]}x{size[1]} pixels; at least "
+                              f"{MIN_SIDE}x{MIN_SIDE} are needed")

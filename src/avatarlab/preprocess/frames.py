@@ -12,6 +12,7 @@ import glob
 import logging
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import cv2
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mpg", ".mpeg", ".mov", ".mkv", ".webm"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
+MIN_SIDE = 32  # pixels: below this an input frame is refused (dlib finds no face, the crop would be all padding)
 
 
 def expand_inputs(inputs) -> list[Path]:
@@ -52,6 +54,26 @@ def input_kind(path: Path) -> str:
     raise InputError(f"{path}: not a video ({', '.join(sorted(VIDEO_SUFFIXES))}), image or image folder")
 
 
+def check_video_stream(path: Path) -> None:
+    """Decodes the video stream once with ffmpeg (imageio-ffmpeg's binary), which reports a damaged or cut-off
+    stream even in formats whose container declares no frame count (MPEG-PS .mpg, where OpenCV estimates the count
+    from the file's size, so a file cut in half declares half the frames). Any error stops with the file named."""
+    try:
+        import imageio_ffmpeg
+
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
+        log.warning("%s: no ffmpeg to check the stream with; only the header's frame count is checked", path)
+        return
+    out = subprocess.run([exe, "-nostdin", "-v", "error", "-i", str(path), "-map", "0:v:0", "-f", "null", "-"],
+                         capture_output=True, text=True, errors="replace", timeout=600)
+    errors = [line.strip() for line in out.stderr.splitlines() if line.strip()]
+    if out.returncode or errors:
+        first = errors[0] if errors else f"exit status {out.returncode}"
+        raise InputError(f"{path}: the video stream is damaged or cut off (ffmpeg: {first!r}, {len(errors)} error "
+                         "line(s)); use a complete copy of the file")
+
+
 def read_video(path: Path, target_fps: float | None, max_frames: int | None, max_missing: float = 0.1):
     """The frames of a video (every `fps / target_fps`-th), at most `max_frames`. A file that decodes fewer frames
     than its header declares, by more than the share `max_missing` (a truncated download, a broken encode), stops
@@ -59,6 +81,7 @@ def read_video(path: Path, target_fps: float | None, max_frames: int | None, max
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
+    check_video_stream(path)
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
     declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     step = max(1, int(round(fps / target_fps))) if target_fps else 1
@@ -68,6 +91,8 @@ def read_video(path: Path, target_fps: float | None, max_frames: int | None, max
         if not ok:
             break
         if index % step == 0:
+            if not frames:
+                check_size(path, frame, "video")
             frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
             if max_frames and len(frames) >= max_frames:
                 break
@@ -82,12 +107,20 @@ def read_video(path: Path, target_fps: float | None, max_frames: int | None, max
     return frames, fps / step
 
 
+def check_size(path: Path, frame: np.ndarray, what: str) -> None:
+    """A frame smaller than MIN_SIDE pixels a side holds no face to find: it would become a black frame."""
+    h, w = frame.shape[:2]
+    if min(h, w) < MIN_SIDE:
+        raise InputError(f"{path}: the {what} is {w}x{h} pixels; at least {MIN_SIDE}x{MIN_SIDE} are needed")
+
+
 def read_images(paths: list[Path]):
     frames = []
     for p in paths:
         image = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if image is None:
             raise InputError(f"{p}: not a readable image")
+        check_size(p, image, "image")
         frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
     return frames
 
