@@ -143,3 +143,20 @@ def test_an_image_too_small_to_hold_a_face_is_refused_by_name(tmp_path, size):
         load_frames([folder], None, None)
     assert str(err.value) == (f"{folder / 'tiny.png'}: the image is {size[0]}x{size[1]} pixels; at least "
                               f"{MIN_SIDE}x{MIN_SIDE} are needed")
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("scale.crop_size=100000", "preprocess.image_size (set by scale.crop_size): must be at most 4096, got 100000"),
+    ("scale.pretrain_feature_size=100000", "model.feature_size (set by scale.pretrain_feature_size): must be at most "
+                                           "512, got 100000"),
+    ("scale.nerf_samples=5000", "model.samples (set by scale.nerf_samples): must be at most 1024, got 5000"),
+    ("pretrain.batch=1000000", "pretrain.batch: must be at most 4096, got 1000000"),
+])
+def test_every_size_has_an_upper_bound_named_before_any_job(override, expected):
+    from helpers import compose_config
+
+    from avatarlab.schema import problems
+
+    assert expected in problems(compose_config(["scale=smoke", override]))
+    for scale in ("smoke", "tiny", "paper"):
+        assert problems(compose_config([f"scale={scale}"])) == [], scale

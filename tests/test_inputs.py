@@ -55,7 +55,7 @@ def test_a_pickled_array_file_is_refused_with_its_name(tmp_path):
 def test_wrong_types_and_sizes_are_named_before_anything_runs():
     found = problems(compose_config(["pretrain.lr=abc", "scale.nerf_width=-3", "model.renderer=fancy"]))
     assert "pretrain.lr: expected a number, got 'abc'" in found
-    assert "model.width: must be at least 1, got -3" in found
+    assert "model.width (set by scale.nerf_width): must be at least 1, got -3" in found
     assert "model.renderer: expected one of proposed, baseline, got 'fancy'" in found
     for scale in ("smoke", "tiny", "paper"):
         for variant in ([], ["finetune=base"], ["strategy=beta6"], ["experiment=renderer"], ["speech_model=window"]):

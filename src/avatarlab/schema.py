@@ -26,6 +26,16 @@ def in_range(low: float, below: float):
     return field(default=MISSING, metadata={"min": low, "below": below})
 
 
+def bounded(low: float, high: float):
+    """low <= value <= high: every size (pixels, samples, widths, batches), so that a typo such as
+    `scale.crop_size=100000` is refused while planning instead of allocating tens of gigabytes in a step."""
+    return field(default=MISSING, metadata={"min": low, "max": high})
+
+
+#: upper bounds of sizes: far above the paper scale's (512 px images, 64 feature maps, 8x384 MLP, 64 samples, batch 64)
+PIXELS, FEATURE_PIXELS, WIDTH, DEPTH, SAMPLES, BATCH = 4096, 512, 4096, 64, 1024, 4096
+
+
 def one_of(*choices: str):
     return field(default=MISSING, metadata={"choices": choices})
 
@@ -45,7 +55,7 @@ class Render:
 @dataclass
 class Demo:
     out: str
-    image_size: int = at_least(8)
+    image_size: int = bounded(8, PIXELS)
     columns: int = at_least(1)
     camera_distance: float = at_least(0.01)
 
@@ -55,7 +65,7 @@ class DlibCheck:
     out: str
     overlay: str
     renders: int = at_least(1)
-    image_size: int = at_least(32)
+    image_size: int = bounded(32, PIXELS)
     coefficient_std: float = at_least(0)
     camera_distance: float = at_least(0.01)
     min_detection_rate: float = at_least(0)
@@ -79,7 +89,7 @@ class Subject:
     truth_out: str = MISSING
     images_out: str = MISSING
     frames: int = at_least(2)
-    video_size: int = at_least(32)
+    video_size: int = bounded(32, PIXELS)
     portraits: int = at_least(1)
 
 
@@ -88,7 +98,7 @@ class Preprocess:
     subject_dir: str
     inputs: list[str]
     truth: Optional[str]
-    image_size: int = at_least(32)
+    image_size: int = bounded(32, PIXELS)
     fps: Optional[float] = at_least(0.001)
     max_frames: Optional[int] = at_least(1)
     crop_margin: float = at_least(0)
@@ -139,7 +149,7 @@ class FitRGBD:
 
 @dataclass
 class Interp:
-    width: int = at_least(1)
+    width: int = bounded(1, WIDTH)
     scales: int = at_least(1)
     flow_init: str = one_of("zero", "farneback")
     keep_unwarped: bool = MISSING
@@ -147,7 +157,7 @@ class Interp:
     subject_still_flow_candidates: list[float] = MISSING
     loss: str = one_of("l1", "l2")
     lr: float = at_least(0)
-    batch: int = at_least(1)
+    batch: int = bounded(1, BATCH)
     iterations: int = at_least(0)
     checkpoint_every: int = at_least(1)
     validation_every: int = at_least(0)
@@ -171,14 +181,14 @@ class Tracking:
 @dataclass
 class Model:
     renderer: str = one_of("proposed", "baseline")
-    image_size: int = at_least(8)
-    feature_size: int = at_least(1)
+    image_size: int = bounded(8, PIXELS)
+    feature_size: int = bounded(1, FEATURE_PIXELS)
     frequencies: int = at_least(0)
-    depth: int = at_least(1)
-    width: int = at_least(1)
+    depth: int = bounded(1, DEPTH)
+    width: int = bounded(1, WIDTH)
     skip_layer: int = at_least(0)
     feature_channels: int = at_least(1)
-    samples: int = at_least(2)
+    samples: int = bounded(2, SAMPLES)
     density_scale: float = at_least(0.001)
     renderer_min_channels: int = at_least(1)
     mlp_precision: str = one_of("float32", "bfloat16")
@@ -209,7 +219,7 @@ class Pretrain:
     alpha_iterations: int = at_least(1)
     beta_iterations: int = at_least(0)
     iterations: Optional[int] = at_least(1)
-    batch: int = at_least(1)
+    batch: int = bounded(1, BATCH)
     lr: float = at_least(0)
     renderer_lr: float = at_least(0)
     offset_lr: float = at_least(0)
@@ -230,7 +240,7 @@ class Finetune:
     init_name: str
     out_dir: str
     iterations: int = at_least(1)
-    batch: int = at_least(1)
+    batch: int = bounded(1, BATCH)
     lr: float = at_least(0)
     renderer_lr: float = at_least(0)
     offset_lr: float = at_least(0)
@@ -304,11 +314,11 @@ class Speech:
     lambda1: float = at_least(0)
     lambda2: float = at_least(0)
     chunk_frames: int = at_least(1)
-    batch: int = at_least(1)
+    batch: int = bounded(1, BATCH)
     k_x: int = at_least(1)
     k_y: int = at_least(1)
     window_inputs: str = one_of("linguistic", "one_hot")
-    window_batch: int = at_least(1)
+    window_batch: int = bounded(1, BATCH * 100)
     speakers: int = at_least(3)
     utterances: int = at_least(1)
     epochs: int = at_least(1)
@@ -411,7 +421,9 @@ def problems(cfg: DictConfig) -> list[str]:
         except Exception as err:  # an interpolation that does not resolve
             found.append(f"{section}: {str(err).splitlines()[0]}")
             continue
+        raw = OmegaConf.to_container(cfg[section], resolve=False)
         hints = typing.get_type_hints(schema)
+        before = len(found)
         for f in fields(schema):
             if f.name not in values:
                 found.append(f"{section}.{f.name}: missing (expected {_type_name(hints[f.name])})")
@@ -426,8 +438,17 @@ def problems(cfg: DictConfig) -> list[str]:
                 found.append(f"{section}.{f.name}: must be at least {low}, got {value!r}")
             if scalar and below is not None and value >= below:
                 found.append(f"{section}.{f.name}: must be below {below}, got {value!r}")
+            high = f.metadata.get("max")
+            if scalar and high is not None and value > high:
+                found.append(f"{section}.{f.name}: must be at most {high}, got {value!r}")
             if choices and value not in choices:
                 found.append(f"{section}.{f.name}: expected one of {', '.join(choices)}, got {value!r}")
+        for k in range(before, len(found)):  # name the setting a user typed when the key only refers to it
+            key = found[k].split(":", 1)[0].split(".", 1)[-1]
+            source = raw.get(key) if isinstance(raw, dict) else None
+            if isinstance(source, str) and source.startswith("${") and source.endswith("}"):
+                head, _, rest = found[k].partition(":")
+                found[k] = f"{head} (set by {source[2:-1]}):{rest}"
         for key in values:
             if key not in hints:
                 found.append(f"{section}.{key}: not a setting of {section} (the schema has "
