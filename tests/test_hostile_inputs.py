@@ -160,3 +160,17 @@ def test_every_size_has_an_upper_bound_named_before_any_job(override, expected):
     assert expected in problems(compose_config(["scale=smoke", override]))
     for scale in ("smoke", "tiny", "paper"):
         assert problems(compose_config([f"scale={scale}"])) == [], scale
+
+
+@pytest.mark.parametrize("override", ["hydra.callbacks.pwn._target_=os.system",
+                                      "+hydra.callbacks.pwn._target_=builtins.exec", "hydra.run.dir=/tmp/x",
+                                      "hydra/launcher=basic"])
+def test_a_hydra_setting_in_hydra_overrides_is_refused_aloud(override):
+    from helpers import REPO
+
+    from avatarlab.workflow.steps import Steps
+
+    with pytest.raises(ValueError) as err:
+        Steps(REPO / "conf", "smoke", "procedural", [override])
+    assert str(err.value).startswith(f"workflow config 'hydra_overrides': {override!r} is refused")
+    assert Steps(REPO / "conf", "smoke", "procedural", ["pretrain.lr=0.002"]).overrides == ("pretrain.lr=0.002",)

@@ -69,6 +69,12 @@ class Steps:
         self.conf_dir = Path(conf_dir)
         self.base = (f"scale={scale}", f"head_model={head_model}")
         self.overrides = tuple(overrides)
+        for override in self.overrides:
+            key = override_key(override)
+            if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+                raise ValueError(f"workflow config 'hydra_overrides': {override!r} is refused: it sets Hydra's own "
+                                 "settings (callbacks, launcher, run folder), which a step never takes from the "
+                                 "workflow config")
 
     @lru_cache(maxsize=None)
     def compose(self, extra: tuple[str, ...] = ()):
