@@ -32,6 +32,7 @@ HOST="$(hostname -s)"
 SLURM_CONF_FILE="${DIR:+$DIR/slurm/slurm.conf}"
 MLFLOW_URI="http://127.0.0.1:$MLFLOW_PORT"
 
+MARKER=".made-by-local_cluster"  # inside a folder this script made with mktemp: the only kind `down` removes
 say() { echo "local_cluster: $*" >&2; }
 die() { say "error: $*"; exit 1; }
 
@@ -40,7 +41,7 @@ die() { say "error: $*"; exit 1; }
 make_dir() {
   if [ -z "$DIR" ]; then
     DIR="$(mktemp -d /tmp/avatarlab-cluster.XXXXXXXX)"
-    (umask 077; printf '%s\n' "$DIR" > "$POINTER")
+    (umask 077; printf '%s\n' "$DIR" > "$DIR/$MARKER"; printf '%s\n' "$DIR" > "$POINTER")
   fi
   [ -L "$DIR" ] && die "$DIR is a symlink: give AVATARLAB_CLUSTER_DIR a real folder"
   mkdir -p "$DIR"
@@ -166,6 +167,12 @@ print_env() {
   echo "export PGPASSFILE=$DIR/pgpass"
 }
 
+# a folder `make_dir` made: a mktemp name under /tmp, a real folder of ours, holding the marker that names it
+made_here() {
+  case "$1" in /tmp/avatarlab-cluster.????????) ;; *) return 1 ;; esac
+  [ -d "$1" ] && [ ! -L "$1" ] && [ -O "$1" ] && [ -f "$1/$MARKER" ] && [ "$(cat "$1/$MARKER")" = "$1" ]
+}
+
 down() {
   [ -n "$DIR" ] || { say "nothing to stop"; return; }
   # the server and its workers and job consumers: one process group (setsid)
@@ -178,6 +185,8 @@ down() {
   done
   [ "$(readlink /etc/slurm/slurm.conf 2>/dev/null)" = "$SLURM_CONF_FILE" ] && rm -f /etc/slurm/slurm.conf
   if [ "$OWN_DIR" = 1 ]; then
+    made_here "$DIR" || die "$POINTER names $DIR, a folder this script did not make; nothing removed (delete \
+$POINTER to forget it)"
     sleep 1; rm -rf -- "$DIR"; rm -f "$POINTER"; say "stopped; removed $DIR"
   else
     say "stopped (state kept in $DIR)"

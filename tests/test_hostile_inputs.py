@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -174,3 +175,35 @@ def test_a_hydra_setting_in_hydra_overrides_is_refused_aloud(override):
         Steps(REPO / "conf", "smoke", "procedural", [override])
     assert str(err.value).startswith(f"workflow config 'hydra_overrides': {override!r} is refused")
     assert Steps(REPO / "conf", "smoke", "procedural", ["pretrain.lr=0.002"]).overrides == ("pretrain.lr=0.002",)
+
+
+def test_local_cluster_down_removes_only_a_folder_it_made(tmp_path):
+    import shutil
+    import subprocess
+    import tempfile
+
+    from helpers import REPO
+
+    repo = tmp_path / "repo"
+    (repo / "cluster").mkdir(parents=True)
+    shutil.copy(REPO / "cluster" / "local_cluster.sh", repo / "cluster")
+    users = tmp_path / "my_thesis"
+    users.mkdir()
+    (users / "chapter1.tex").write_text("years of work")
+    (repo / ".local_cluster").write_text(f"{users}\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "AVATARLAB_CLUSTER_DIR"}
+
+    def down():
+        return subprocess.run(["bash", str(repo / "cluster" / "local_cluster.sh"), "down"], capture_output=True,
+                              text=True, env=env, timeout=60)
+
+    refused = down()
+    assert refused.returncode != 0 and (users / "chapter1.tex").read_text() == "years of work"
+    assert f"names {users}, a folder this script did not make; nothing removed" in refused.stderr
+    made = Path(tempfile.mkdtemp(prefix="avatarlab-cluster.", dir="/tmp"))
+    assert len(made.name) == len("avatarlab-cluster.") + 8
+    (made / ".made-by-local_cluster").write_text(f"{made}\n")
+    (repo / ".local_cluster").write_text(f"{made}\n")
+    removed = down()
+    assert removed.returncode == 0, removed.stderr
+    assert not made.exists() and not (repo / ".local_cluster").exists()
