@@ -207,3 +207,31 @@ def test_local_cluster_down_removes_only_a_folder_it_made(tmp_path):
     removed = down()
     assert removed.returncode == 0, removed.stderr
     assert not made.exists() and not (repo / ".local_cluster").exists()
+
+
+def test_an_interrupted_report_leaves_the_previous_one_whole(tmp_path, monkeypatch):
+    from test_report import write_avatar
+
+    from avatarlab.evaluate import report
+
+    results, final = tmp_path / "results", "beta6_from_alpha2"
+    for k, psnr in enumerate((26.0, 26.4)):
+        write_avatar(results, "synth_talk", "final", final + (f"_seed{k}" if k else ""), final, psnr)
+    out = results / "report"
+    report.build(results, out, final, "smoke")
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert Path("tables/final_avatars.csv") in before and Path("summary.json") in before
+    write_avatar(results, "synth_talk", "final", final + "_seed2", final, 30.0)  # new results, then a kill
+    real = report.speech_table
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt("SIGTERM")
+
+    monkeypatch.setattr(report, "speech_table", killed)
+    with pytest.raises(KeyboardInterrupt):
+        report.build(results, out, final, "smoke")
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before, "every file of the previous report, byte for byte, and nothing else"
+    monkeypatch.setattr(report, "speech_table", real)
+    report.build(results, out, final, "smoke")
+    assert "| 3 |" in (out / "tables" / "final_avatars.md").read_text() and not (results / ".report.staging").exists()

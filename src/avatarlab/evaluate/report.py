@@ -663,7 +663,34 @@ def copy_figure(src: Path, dst: Path) -> Path | None:
     return dst
 
 
+#: what the report step writes into its folder (the folder also holds other steps' files: the renderer experiment)
+REPORT_PARTS = ("tables", "figures", "README.md", "summary.json")
+
+
 def build(results: Path, out: Path, final: str, scale: str) -> dict:
+    """Writes the report into a staging folder beside `out`, then moves each part into place (summary.json last): an
+    interrupted report leaves the previous one whole."""
+    staging = out.parent / f".{out.name}.staging"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    summary = write_report(results, staging, final, scale)
+    out.mkdir(parents=True, exist_ok=True)
+    for part in REPORT_PARTS:
+        new, old = staging / part, out / part
+        if new.is_dir():
+            retired = out / f".{part}.old"
+            shutil.rmtree(retired, ignore_errors=True)
+            if old.exists():
+                old.rename(retired)
+            new.rename(old)
+            shutil.rmtree(retired, ignore_errors=True)
+        else:
+            new.replace(old)
+    shutil.rmtree(staging, ignore_errors=True)
+    return summary
+
+
+def write_report(results: Path, out: Path, final: str, scale: str) -> dict:
     tables_dir, figures_dir = out / "tables", out / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)
     avatars = load_avatars(results)
