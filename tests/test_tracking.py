@@ -50,10 +50,50 @@ def test_a_run_killed_with_kill_9_is_marked_killed_by_the_next_start(store, tmp_
     assert proc.returncode == -9
     (doomed,) = runs_of(results, "attributes.run_name = 'doomed'")
     assert doomed.info.status == "RUNNING"
-    from avatarlab.tracking import init_store
+    from avatarlab.tracking import start_run
 
-    init_store(results, scales=("smoke",))
+    with start_run(store[1], "pretrain", "the next step"):  # any later step's start, not only the store's creation
+        pass
     assert client(results).get_run(doomed.info.run_id).info.status == "KILLED"
+
+
+def test_a_failed_rerun_keeps_the_finished_run_it_would_replace(store, tmp_path):
+    """A full disk: the new run of an output dies; the old FINISHED run of that output stays until a new one ends."""
+    from avatarlab.tracking import start_run
+
+    results, cfg = store
+    out = tmp_path / "results" / "smoke" / "avatars" / "x"
+    with start_run(cfg, "finetune", "x", output=out) as run:
+        old = run.info.run_id
+    with pytest.raises(OSError):
+        with start_run(cfg, "finetune", "x", output=out):
+            raise OSError(28, "No space left on device")
+    statuses = {r.info.run_id: r.info.status for r in runs_of(results, f"tags.output = '{out.resolve()}'")}
+    assert statuses[old] == "FINISHED" and sorted(statuses.values()) == ["FAILED", "FINISHED"]
+    with start_run(cfg, "finetune", "x", output=out) as run:
+        new = run.info.run_id
+    assert [r.info.run_id for r in runs_of(results, f"tags.output = '{out.resolve()}'")] == [new]
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "emptied"])
+def test_a_damaged_store_stops_once_in_one_line_naming_it(store, damage):
+    from avatarlab import tracking
+    from avatarlab.errors import InputFileError
+    from avatarlab.tracking import main, start_run
+
+    results, cfg = store
+    db = results / "mlflow.db"
+    tracking._CHECKED.clear()  # this process checked the store while it was whole
+    data = db.read_bytes()
+    db.write_bytes({"truncated": data[: len(data) // 3], "garbage": b"not a database at all" * 100,
+                    "emptied": b""}[damage])
+    before = db.read_bytes()
+    with pytest.raises(InputFileError) as err:
+        with start_run(cfg, "pretrain", "alpha1"):
+            pass
+    message = str(err.value)
+    assert message.startswith(f"{db}: ") and "\n" not in message and f"mv {db} {db}.broken" in message
+    assert main(["init", str(results)]) == 2 and db.read_bytes() == before, "never replaced by a new store"
 
 
 def test_a_resumed_step_continues_its_run_and_a_rerun_leaves_one_run(store, tmp_path):

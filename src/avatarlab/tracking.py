@@ -18,6 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from avatarlab.errors import InputFileError
+
 log = logging.getLogger(__name__)
 TELEMETRY_OFF = {"MLFLOW_DISABLE_TELEMETRY": "true", "DO_NOT_TRACK": "true"}
 
@@ -46,8 +48,38 @@ def artifact_root(results_dir: str | Path = "results") -> str:
     return (Path(results_dir).resolve() / "mlartifacts").as_uri()
 
 
+def check_store(results_dir: str | Path) -> None:
+    """The SQLite store must be a readable MLflow database: a truncated, emptied or overwritten `mlflow.db` stops here
+    with one line naming it (not a page of SQLAlchemy per step, nor a new empty store over the old runs)."""
+    uri = tracking_uri(results_dir)
+    if not uri.startswith("sqlite:///"):
+        return
+    db = Path(uri[len("sqlite:///"):])
+    if not db.exists() or db in _CHECKED:
+        return
+    import sqlite3
+
+    advice = f"move it aside (mv {db} {db}.broken) and run again: a new store is made, the results files are untouched"
+    if db.stat().st_size == 0:
+        raise InputFileError(f"{db}: the MLflow store is empty (0 bytes); {advice}")
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
+            check = con.execute("PRAGMA quick_check").fetchone()[0]
+            tables = {row[0] for row in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    except sqlite3.DatabaseError as err:
+        raise InputFileError(f"{db}: not a readable MLflow store ({err}); {advice}") from None
+    if check != "ok" or not {"experiments", "runs"} <= tables:
+        reason = f"integrity check: {check}" if check != "ok" else "no MLflow tables in it"
+        raise InputFileError(f"{db}: not a readable MLflow store ({reason}); {advice}")
+    _CHECKED.add(db)  # once per process: the check reads the whole file
+
+
+_CHECKED: set[Path] = set()
+
+
 def _mlflow(results_dir):
     os.environ.update(TELEMETRY_OFF)
+    check_store(results_dir)
     import mlflow
 
     mlflow.set_tracking_uri(tracking_uri(results_dir))
@@ -82,12 +114,14 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def mark_dead_runs_killed(results_dir: str | Path, experiments: list[str]) -> int:
-    """Runs still RUNNING whose process (pid tag, on this host) is gone become KILLED. -> how many."""
+def mark_dead_runs_killed(results_dir: str | Path, experiments: list[str], ids: list[str] | None = None) -> int:
+    """Runs still RUNNING whose process (pid tag, on this host) is gone become KILLED (in the named experiments, or
+    the experiment ids given). -> how many."""
     mlflow = _mlflow(results_dir)
     client = mlflow.tracking.MlflowClient()
     host, count = socket.gethostname(), 0
-    ids = [e.experiment_id for e in (mlflow.get_experiment_by_name(n) for n in experiments) if e is not None]
+    if ids is None:
+        ids = [e.experiment_id for e in (mlflow.get_experiment_by_name(n) for n in experiments) if e is not None]
     if not ids:
         return 0
     for run in client.search_runs(ids, "attributes.status = 'RUNNING'", max_results=5000):
@@ -156,6 +190,9 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
     mlflow = _mlflow(cfg.paths.results)
     experiment_id = ensure_experiment(tr.experiment, cfg.paths.results)
     mlflow.set_experiment(experiment_id=experiment_id)
+    # a step killed with kill -9 (or a lost node) left its run RUNNING: every step's start closes such runs
+    if mark_dead_runs_killed(cfg.paths.results, [], [experiment_id]):
+        log.info("runs left RUNNING by processes that no longer exist are now KILLED")
     all_tags = {"stage": stage, "scale": tr.scale, "git_sha": git_sha(), "pid": str(os.getpid()),
                 "host": socket.gethostname(),
                 "results_dir": str(Path(cfg.paths.results).resolve())}  # which checkout / work dir, on a server
@@ -175,8 +212,6 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
         mlflow.set_tags({"pid": all_tags["pid"], "host": all_tags["host"]})
     else:
         run = mlflow.start_run(run_name=run_name, tags=all_tags)
-        if output is not None:
-            _retire_superseded(mlflow, experiment_id, all_tags["output"], run.info.run_id)
         from omegaconf import OmegaConf
 
         mlflow.log_dict(OmegaConf.to_container(cfg, resolve=True), "config.yaml")  # the step's resolved config
@@ -185,6 +220,8 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
                                (o.partition("=") for o in str(tr.point_overrides).split())})
     with run:
         yield run
+    if output is not None:  # only once this run has finished: a failed rerun (a full disk) keeps the old one
+        _retire_superseded(mlflow, experiment_id, all_tags["output"], run.info.run_id)
 
 
 def log_to_run(cfg, run_id: str | None, model: dict, baselines: dict, gains: dict, prefix: str = "test",
@@ -237,7 +274,11 @@ def main(argv=None) -> int:
     if len(argv) >= 1 and argv[0] == "init":
         results = argv[1] if len(argv) > 1 else "results"
         marker = Path(argv[2]) if len(argv) > 2 else None
-        uri = init_store(results)
+        try:
+            uri = init_store(results)
+        except InputFileError as err:
+            print(f"avatarlab error: {err}", file=sys.stderr)
+            return 2
         if marker:
             marker.write_text(uri + "\n")
         print(f"MLflow store ready: {uri}")
