@@ -235,3 +235,22 @@ def test_an_interrupted_report_leaves_the_previous_one_whole(tmp_path, monkeypat
     monkeypatch.setattr(report, "speech_table", real)
     report.build(results, out, final, "smoke")
     assert "| 3 |" in (out / "tables" / "final_avatars.md").read_text() and not (results / ".report.staging").exists()
+
+
+@pytest.mark.slow
+def test_the_venvs_snakemake_runs_steps_without_an_activated_venv(tmp_path):
+    """`.venv/bin/snakemake` with a PATH that has no venv (a new shell): the steps still find avatarlab."""
+    import os
+    import subprocess
+    import sys
+
+    from helpers.workflow import snakemake_command
+
+    env = {k: v for k, v in os.environ.items() if k not in ("MLFLOW_TRACKING_URI", "VIRTUAL_ENV")}
+    env["PATH"] = "/usr/local/bin:/usr/bin:/bin"
+    proc = subprocess.run(snakemake_command(tmp_path, "results/mlflow.ready", "--cores", "1", "--config",
+                                            "scale=smoke"), env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "results" / "mlflow.ready").read_text().startswith("sqlite:///")
+    assert str(Path(sys.executable).parent) not in env["PATH"]
