@@ -358,6 +358,27 @@ def test_a_completed_run_has_nothing_to_do(smoke_run, workdir):
     assert jobs_planned(again) == {}, again.stdout[-2000:]
 
 
+@pytest.mark.slow
+def test_a_model_lost_by_a_failed_step_reruns_everything_made_from_it(smoke_run, workdir, tmp_path):
+    """A pretraining step that fails (after a config change, a full disk, a kill) leaves its model.pt and train.json
+    deleted by Snakemake, while its evaluation, the avatars made from it and the report stay: the next run must remake
+    the model and then everything made from it (Snakemake alone would say 'Nothing to be done')."""
+    model = smoke_run / "smoke" / "pretrain" / "beta5_from_alpha2"
+    kept = tmp_path / "kept"
+    shutil.copytree(model, kept)
+    try:
+        for name in ("model.pt", "train.json"):
+            (model / name).unlink()
+        planned = jobs_planned(snakemake(workdir, "-n"))
+        assert planned.get("pretrain_beta") == 1 and planned.get("evaluate_pretrained") == 1, planned
+        assert planned.get("finetune_avatar", 0) >= 1 and planned.get("evaluate_avatar", 0) >= 1, planned
+        assert planned.get("report_tables") == 1 and planned.get("control_figure", 0) >= 1, planned
+    finally:
+        for name in ("model.pt", "train.json"):
+            shutil.copy2(kept / name, model / name)
+    assert jobs_planned(snakemake(workdir, "-n")) == {}, "restored with its times: nothing to do again"
+
+
 def repo_copy(tmp_path: Path) -> Path:
     """A copy of the code, config and workflow, to edit without touching the repository."""
     copy = tmp_path / "repo"

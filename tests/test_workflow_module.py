@@ -140,6 +140,12 @@ def test_plan_lists_the_dissertations_experiments():
     assert not [o for o in outputs + plan.pretrain_outputs() + plan.preprocessing_outputs() if "motion_" in o]
     with pytest.raises(ValueError, match="interp_motion_videos': synth_talk is also a subject"):
         Plan({**config, "interp_motion_videos": {"synth_talk": {"source": "synthetic"}}})
+    final = plan.final_outputs()  # what results are made from is requested too: a lost model is remade
+    for made in ("pretrain/beta5_from_alpha2/model.pt", "avatars/synth_talk/final/beta6_from_alpha2_seed1/model.pt",
+                 "subjects/synth_turns/fit_rgb.npz", "subjects/portraits/masks.npz", "speech/lstm_reg/model.pt",
+                 "interp/model.pt", "subjects/motion_talk/frames.json"):
+        assert f"results/smoke/{made}" in final, made
+    assert len(final) == len(set(final))
     figures = [o for o in plan.pretrain_outputs() if "/controls/" in o]
     assert figures == [f"results/smoke/pretrain/controls/{f}.json" for f in config["control_figures"]]
     only_alpha1 = Plan({**config, "alphas": ["alpha1"]})  # figures naming a model this run does not train: left out

@@ -253,7 +253,27 @@ class Plan:
     def sweep_outputs(self, name: str) -> list[str]:
         return [f"{self.sweep_dir(name)}/table.md", f"{self.sweep_dir(name)}/figure.png"]
 
+    def made_from(self, outputs: list[str]) -> list[str]:
+        """The files the requested results are made from that a step could lose (a failed or killed step's outputs
+        are deleted): trained models and the preprocessed data. Requested too, so that a missing one is made again
+        and every result made from it is remade after it (Snakemake ignores a missing intermediate file whose
+        descendants exist: snakemake/snakemake#1978)."""
+        made = []
+        for output in outputs:
+            folder, _, name = output.rpartition("/")
+            if name == "eval.json" and ("/pretrain/" in output or "/avatars/" in output):
+                made += [f"{folder}/model.pt", f"{folder}/train.json"]
+            elif name == "metrics.json" and "/speech/" in output:
+                made += [f"{folder}/model.pt", f"{self.results}/speech/corpus.npz"]
+        for subject in [*self.subjects, self.real_images["name"]]:
+            made += [f"{self.subject_dir(subject)}/{f}" for f in ("frames.json", "landmarks.npz", "masks.npz",
+                                                                  "fit_rgb.npz")]
+        made += [f"{self.subject_dir(s)}/frames.json" for s in self.motion_videos]
+        made += [f"{self.results}/interp/model.pt"] if self.subjects else []
+        return sorted(set(made) - set(outputs))
+
     def final_outputs(self) -> list[str]:
-        return (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
-                + self.speech_outputs() + [f"{self.results}/report/README.md"]
+        results = (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
+                   + self.speech_outputs())
+        return (results + self.made_from(results) + [f"{self.results}/report/README.md"]
                 + [o for name in self.requested_sweeps for o in self.sweep_outputs(name)])
