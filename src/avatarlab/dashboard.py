@@ -2,7 +2,7 @@
 
 `python -m avatarlab.dashboard [--results results] [--port 5000] [--scale tiny]` (what `make dashboard` runs). The
 server (MLflow's uvicorn and its job workers) runs in a process group of its own, which SIGTERM, SIGINT (Ctrl-C) or
-the end of this process stops as a whole; a port already in use is reported and the exit status is 1. MLflow's usage
+the end of this process stops as a whole (a watchdog process stops it when this one is killed outright, kill -9); a port already in use is reported and the exit status is 1. MLflow's usage
 telemetry is off for the servers the project starts. With MLFLOW_TRACKING_URI set to a shared server (http...), open
 that server's UI instead: there is nothing to serve here.
 """
@@ -38,9 +38,44 @@ def port_taken(port: int, host: str = "127.0.0.1") -> bool:
     return False
 
 
+#: a process of its own that outlives this one: when the launcher is gone (even by kill -9, which no handler sees),
+#: it stops the server's whole process group (MLflow's server, uvicorn, its job workers), then ends
+WATCHDOG = """
+import os, signal, sys, time
+launcher, group = int(sys.argv[1]), int(sys.argv[2])
+def alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
+def group_alive():
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
+while alive(launcher) and group_alive():
+    time.sleep(0.5)
+if group_alive():
+    os.killpg(group, signal.SIGTERM)
+    for _ in range(20):
+        time.sleep(0.5)
+        if not group_alive():
+            break
+    else:
+        os.killpg(group, signal.SIGKILL)
+"""
+
+
 def serve(cmd: list[str], env: dict) -> int:
-    """Runs the server in a new session (its own process group) and stops the group with this process."""
+    """Runs the server in a new session (its own process group) and stops the group with this process: on SIGTERM,
+    SIGINT or SIGHUP here, and through a watchdog process when this one is killed outright."""
     proc = subprocess.Popen(cmd, env=env, start_new_session=True)
+    subprocess.Popen([sys.executable, "-c", WATCHDOG, str(os.getpid()), str(proc.pid)], start_new_session=True,
+                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def stop(*_):
         try:
