@@ -1,20 +1,17 @@
 # Wiring of the rules to the workflow package (src/avatarlab/workflow/, unit-tested): the plan of results and each
 # step's settings, code digest and quoted command line. No logic lives here.
-import os
 import sys
 from pathlib import Path
 
 REPO = Path(workflow.basedir)
 sys.path.insert(0, str(REPO / "src"))
-# the steps run `python -m ...`: the interpreter running Snakemake comes first on their PATH, so `.venv/bin/snakemake`
-# works without an activated venv (an environment a deployment method activates still puts its own first)
-os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
 
 from snakemake.utils import validate  # noqa: E402
 
-from avatarlab.workflow.steps import Steps  # noqa: E402
+from avatarlab.workflow.steps import Steps, interpreter_first_on_path  # noqa: E402
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
+interpreter_first_on_path()  # `.venv/bin/snakemake` works without an activated venv
 validate(config, schema="../schemas/config.schema.yaml")  # a wrong key or value stops here, before any job
 STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("hydra_overrides", []))
 SCALE = STEPS.compose().scale

@@ -15,12 +15,22 @@ params (workflow/rules/common.smk `step_params`):
 from __future__ import annotations
 
 import ast
+import os
 import re
 import shlex
+import sys
 from functools import lru_cache
 from pathlib import Path
 
 from avatarlab.provenance import SRC, code_digest, module_path
+
+
+def interpreter_first_on_path() -> None:
+    """The steps run `python -m ...`: the interpreter running Snakemake goes first on the PATH they inherit, so
+    `.venv/bin/snakemake` works from a shell without the venv activated (an environment a deployment method such as
+    --use-conda activates still puts its own first)."""
+    here = str(Path(sys.executable).parent)
+    os.environ["PATH"] = os.pathsep.join([here, os.environ.get("PATH", "")])
 
 
 def declared_reads(module: str, src: Path = SRC) -> tuple[str, ...]:
