@@ -17,10 +17,12 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
-# Debian's espeak-ng and Festival with three voices: the voices of the synthetic speech corpus (speech-driven animation)
-SPEECH_PACKAGES := espeak-ng festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts
+# Debian's espeak-ng and Festival with three voices: the voices of the synthetic speech corpus (speech-driven animation);
+# graphviz for `snakemake --dag / --rulegraph` pictures (docs/rulegraph.svg)
+SPEECH_PACKAGES := espeak-ng festival festvox-kallpc16k festvox-kdlpc16k festvox-us-slt-hts graphviz
 system:
-	@{ command -v espeak-ng && command -v festival && [ -d /usr/share/festival/voices/english/kal_diphone ] && \
+	@{ command -v espeak-ng && command -v festival && command -v dot && \
+	   [ -d /usr/share/festival/voices/english/kal_diphone ] && \
 	   [ -d /usr/share/festival/voices/english/ked_diphone ] && \
 	   [ -d /usr/share/festival/voices/us/cmu_us_slt_arctic_hts ]; } >/dev/null 2>&1 || \
 	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \

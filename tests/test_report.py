@@ -89,12 +89,12 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
     assert "not testable: the INSTA videos" in claims
 
 
-def test_the_readme_lists_every_substitution_of_the_report():
+def test_the_method_doc_lists_every_substitution_of_the_report():
     from pathlib import Path
 
     from avatarlab.evaluate.report import SUBSTITUTIONS
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "method.md").read_text()
     for what, theirs, ours, why in SUBSTITUTIONS:
         assert f"| {what} | {theirs} | {ours} | {why} |" in readme, what
 
