@@ -4,7 +4,8 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 CORES ?= 2
-SCALE ?= tiny
+# the scale: SCALE=... on the command line (then remembered in .avatarlab-scale), else the remembered one, else tiny
+SCALE ?= $(shell cat .avatarlab-scale 2>/dev/null || echo tiny)
 PORT ?= 5000
 
 .PHONY: main test test-fast lint setup system browser cluster unlock dashboard clean-results
@@ -47,6 +48,7 @@ cluster:
 # times, headline tables) and Snakemake's HTML report beside results/$(SCALE)/report/README.md
 START := results/.main_$(SCALE).start
 main: setup system
+	@echo "$(SCALE)" > .avatarlab-scale && echo "avatarlab: scale $(SCALE) (remembered in .avatarlab-scale for later make and snakemake calls)"
 	@mkdir -p results && { [ -d results/$(SCALE) ] && state=resumed || state=fresh; echo "$$(date +%s) $$state" > $(START); }
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE)
 	$(BIN)/python -m avatarlab.evaluate.results_card --results results/$(SCALE) --start $(START)
@@ -71,7 +73,7 @@ unlock: setup
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --unlock --cores 1 --config scale=$(SCALE)
 
 dashboard: setup
-	$(BIN)/python -m avatarlab.dashboard --results results --port $(PORT)
+	$(BIN)/python -m avatarlab.dashboard --results results --port $(PORT) --scale $(SCALE)
 
 clean-results:
 	rm -rf results logs

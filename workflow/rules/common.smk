@@ -8,10 +8,11 @@ sys.path.insert(0, str(REPO / "src"))
 
 from snakemake.utils import validate  # noqa: E402
 
-from avatarlab.workflow.steps import Steps, interpreter_first_on_path  # noqa: E402
+from avatarlab.workflow.steps import Steps, chosen_scale, interpreter_first_on_path  # noqa: E402
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 interpreter_first_on_path()  # `.venv/bin/snakemake` works without an activated venv
+config["scale"] = chosen_scale(config.get("scale"))  # --config scale=..., else the one `make main SCALE=` chose
 validate(config, schema="../schemas/config.schema.yaml")  # a wrong key or value stops here, before any job
 STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("hydra_overrides", []))
 SCALE = STEPS.compose().scale

@@ -33,6 +33,26 @@ def interpreter_first_on_path() -> None:
     os.environ["PATH"] = os.pathsep.join([here, os.environ.get("PATH", "")])
 
 
+SCALES = ("smoke", "tiny", "paper")
+SCALE_FILE = ".avatarlab-scale"  # in the work folder: the scale `make main SCALE=...` chose last
+
+
+def chosen_scale(given: str | None, workdir: Path | None = None, say=None) -> str:
+    """The scale of this call: the one given (`--config scale=...`), else the one remembered in the work folder's
+    .avatarlab-scale (written by `make main SCALE=...`), else tiny; said in one line (`say`, default stderr)."""
+    remembered = Path(workdir or Path.cwd()) / SCALE_FILE
+    if given:
+        scale, source = str(given), "given"
+    elif remembered.is_file() and remembered.read_text().strip():
+        scale, source = remembered.read_text().strip(), f"remembered in {remembered.name}"
+    else:
+        scale, source = "tiny", "the default"
+    if scale not in SCALES:
+        raise ValueError(f"scale {scale!r} ({source}): expected one of {', '.join(SCALES)}")
+    (say or (lambda text: print(text, file=sys.stderr)))(f"avatarlab: scale {scale} ({source})")
+    return scale
+
+
 def declared_reads(module: str, src: Path = SRC) -> tuple[str, ...]:
     """The `READS` tuple of an entry module, read from its source (the module is not imported)."""
     tree = ast.parse(module_path(module, src).read_text())
