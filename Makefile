@@ -50,7 +50,7 @@ START := results/.main_$(SCALE).start
 main: setup system
 	@echo "$(SCALE)" > .avatarlab-scale && echo "avatarlab: scale $(SCALE) (remembered in .avatarlab-scale for later make and snakemake calls)"
 	@mkdir -p results && { [ -d results/$(SCALE) ] && state=resumed || state=fresh; echo "$$(date +%s) $$state" > $(START); }
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --quiet rules host --config scale=$(SCALE)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --logger avatarlab --config scale=$(SCALE)
 	$(BIN)/python -m avatarlab.evaluate.results_card --results results/$(SCALE) --start $(START)
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html
