@@ -12,6 +12,12 @@ min_version("9.0")
 configfile: str(Path(workflow.basedir) / "workflow" / "config.yaml")
 
 
+# your own subjects, written into the work folder by `avatarlab add-subject` (not committed): merged into `subjects`
+if (Path.cwd() / "avatarlab.subjects.yaml").is_file():
+
+    configfile: str(Path.cwd() / "avatarlab.subjects.yaml")
+
+
 report: "workflow/report/workflow.rst"
 
 

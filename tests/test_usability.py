@@ -58,3 +58,43 @@ def test_the_quiet_console_prints_a_line_per_step_and_a_failed_steps_log(tmp_pat
     assert failed.returncode != 0
     assert "FAILED: step extract_frames (job 0); its log: logs/smoke/subjects/bad/frames.log" in text
     assert f"    avatarlab error: {images / 'a.png'}: the image is 1x1 pixels" in text
+
+
+def test_add_subject_checks_the_subject_writes_it_and_the_workflow_plans_it(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from avatarlab import cli
+
+    clip = next((p for p in (REPO.parent / "shared" / "data" / "obama").glob("*.mp4")), None) if (
+        REPO.parent / "shared" / "data" / "obama").is_dir() else None
+    video = tmp_path / "me.mp4"
+    if clip is not None:
+        shutil.copy(clip, video)
+    else:
+        video.write_bytes(b"")  # planning looks at names only
+    monkeypatch.setattr(cli, "LOCAL_SUBJECTS", tmp_path / "avatarlab.subjects.yaml")
+    monkeypatch.setattr(cli, "scale_of", lambda given: "smoke")
+    assert cli.main(["add-subject", "me", str(video), "--fps", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "results/smoke/avatars/me/final/beta6_from_alpha2/eval.json" in out
+    written = (tmp_path / "avatarlab.subjects.yaml").read_text()
+    assert f"path: {video}" in written and "source: video" in written and "fps: 2.0" in written
+    assert cli.main(["add-subject", "portraits", str(video)]) == 2, "the real image set's name is refused"
+    assert cli.main(["add-subject", "me2", str(tmp_path / "nothere.mp4")]) == 2
+    assert cli.main(["add-subject", "bad name", str(video)]) == 2
+    assert "portraits" not in (tmp_path / "avatarlab.subjects.yaml").read_text(), "a refused subject is not written"
+    planned = run_snakemake(tmp_path, "-n", "--cores", "2", "results/smoke/avatars/me/final/beta6_from_alpha2/eval.json",
+                            "--config", "scale=smoke")
+    counts = jobs_planned(planned)
+    assert counts["extract_frames"] >= 1 and counts["evaluate_avatar"] == 1 and counts["finetune_avatar"] == 1, counts
+
+
+def test_status_says_what_would_run_and_why(tmp_path, monkeypatch, capsys):
+    from avatarlab import cli
+
+    monkeypatch.setattr(cli, "scale_of", lambda given: "smoke")
+    monkeypatch.setattr(cli, "WORKDIR", tmp_path)  # a scratch work folder: nothing done yet
+    assert cli.main(["status"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("scale smoke: ") and lines[0].endswith(" steps would run")
+    assert any(line.split()[0] == "pretrain_alpha" and "2 x Missing output files" in line for line in lines[1:])
