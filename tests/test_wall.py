@@ -1,0 +1,105 @@
+"""The wall between choosing and scoring: test frames are read by evaluation alone (issue 47).
+
+At the fine-tuning step: replace every test frame of a subject (its image, mask, landmarks and fitted expression and
+pose) with noise, and the trained weights, the chosen snapshot and everything the step writes are bit-identical; only
+the evaluation changes. (The preprocessing before it still fits a subject's identity on all its frames: see
+docs/method.md, "The validation wall".)
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers import step_cfg
+from helpers.subjects import fake_video_subject, tiny_model_overrides
+from PIL import Image
+
+
+@pytest.fixture(scope="module")
+def parent(tmp_path_factory):
+    from helpers import fake_real_set
+
+    from avatarlab.train import pretrain
+
+    folder = tmp_path_factory.mktemp("parent")
+    fake_real_set(folder / "portraits")
+    cfg = step_cfg(pretrain, tiny_model_overrides() + [f"pretrain.out_dir={folder / 'alpha1'}",
+                                                       f"pretrain.real_subject_dir={folder / 'portraits'}"])
+    pretrain.pretrain_model(cfg, torch.device("cpu"))
+    return folder / "alpha1" / "model.pt"
+
+
+def noise_the_test_frames(subject, test: list[int]) -> None:
+    rng = np.random.default_rng(7)
+    frames = json.loads((subject / "frames.json").read_text())["files"]
+    for i in test:
+        size = Image.open(subject / "frames" / frames[i]).size
+        Image.fromarray((rng.random((size[1], size[0], 3)) * 255).astype(np.uint8)).save(subject / "frames" / frames[i])
+    with np.load(subject / "masks.npz") as m:
+        masks = m["masks"].copy()
+    masks[test] = rng.random(masks[test].shape) > 0.5
+    np.savez(subject / "masks.npz", masks=masks)
+    with np.load(subject / "landmarks.npz") as m:
+        points, found = m["points"].copy(), m["found"]
+    points[test] += rng.normal(0, 5, points[test].shape)
+    np.savez(subject / "landmarks.npz", points=points, found=found)
+    with np.load(subject / "fit_rgb.npz") as f:
+        fit = {k: f[k].copy() for k in f.files}
+    for key in ("expression", "pose"):
+        fit[key][test] += rng.normal(0, 0.5, fit[key][test].shape).astype(fit[key].dtype)
+    np.savez(subject / "fit_rgb.npz", **fit)
+
+
+def digests(folder) -> dict[str, str]:
+    """Every file the fine-tuning step wrote, by content (train.json without its wall-clock seconds)."""
+    out = {}
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        data = path.read_bytes()
+        if path.name == "train.json":
+            report = json.loads(data)
+            for key in ("train_seconds", "seconds", "samples_per_second"):
+                report.pop(key, None)
+            for key in ("history", "validation_scores"):  # their wall-clock seconds aside
+                report[key] = [{k: v for k, v in h.items() if k != "seconds"} for h in report.get(key) or []]
+            data = json.dumps(report, sort_keys=True).encode()
+        if path.suffix == ".pt":  # the weights and the iterations (its config names the subject's folder)
+            content = torch.load(path, weights_only=True)
+            weights = content["state"]
+            assert weights, path
+            data = b"".join(t.numpy().tobytes() for t in weights.values()) + repr(
+                (content.get("step"), content.get("trained_to"))).encode()
+        out[str(path.relative_to(folder))] = hashlib.sha256(data).hexdigest()
+    return out
+
+
+@pytest.mark.slow
+def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp_path, parent):
+    from avatarlab.evaluate import avatar as evaluation
+    from avatarlab.train import finetune
+
+    runs = {}
+    for name in ("clean", "noised"):
+        subject = fake_video_subject(tmp_path / name / "subject", count=10)
+        out = tmp_path / name / "avatar"
+        common = tiny_model_overrides() + [f"finetune.subject_dir={subject}", "finetune.test_frames=2",
+                                           "finetune.validation_frames=2", f"finetune.out_dir={out}",
+                                           "tracking.enabled=false"]
+        if name == "noised":
+            noise_the_test_frames(subject, [8, 9])
+        _, _, report = finetune.finetune_avatar(step_cfg(finetune, common + [f"finetune.init_model={parent}",
+                                                                              "finetune.iterations=4"]),
+                                                torch.device("cpu"))
+        assert report["test_indices"] == [8, 9]
+        written = digests(out)
+        cfg = step_cfg(evaluation, common + [f"evaluate.model={out / 'model.pt'}", f"evaluate.out={out / 'eval.json'}",
+                                             "evaluate.st_lpips=false"])
+        scores, _ = evaluation.evaluate_avatar(cfg, torch.device("cpu"))
+        chosen_on = [(c["step"], c["psnr"]) for c in report["validation_scores"]]
+        runs[name] = (written, report["chosen_step"], chosen_on, scores["all"]["model"]["psnr"])
+    clean, noised = runs["clean"], runs["noised"]
+    assert clean[0] == noised[0], "every file the fine-tuning step wrote is the same, byte for byte"
+    assert clean[1] == noised[1] and clean[2] == noised[2], "the same snapshot chosen on the same validation scores"
+    assert clean[3] != pytest.approx(noised[3], abs=1e-3), "only the evaluation sees the test frames"
