@@ -102,7 +102,7 @@ def test_a_frame_cap_keeps_every_clip(tmp_path):
         folder = tmp_path / f"clip{k}"
         folder.mkdir()
         for i in range(count):
-            cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((8, 8, 3), 10 * i + 100 * k, np.uint8))
+            cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((16, 16, 3), 10 * i + 100 * k, np.uint8))
         inputs.append(folder)
     frames, sources, _, _ = load_frames(inputs, None, 8)
     assert sources == ["clip0"] * 3 + ["clip1"] * 2 + ["clip2"] * 3

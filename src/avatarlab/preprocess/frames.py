@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mpg", ".mpeg", ".mov", ".mkv", ".webm"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
-MIN_SIDE = 32  # pixels: below this an input frame is refused (dlib finds no face, the crop would be all padding)
+MIN_SIDE = 16  # pixels: below this an input frame is refused (no face to find; the crop would be all padding)
 
 
 def expand_inputs(inputs) -> list[Path]:
