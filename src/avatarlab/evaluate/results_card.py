@@ -7,7 +7,7 @@ Written last by `make main` (after the workflow, before Snakemake's HTML report)
 Provenance: the commit and whether the tree had uncommitted changes, the start and end time, the machine's CPU model
 and the flags that change float arithmetic, the core count, memory, Python, torch and its thread count, Snakemake,
 whether the run started from an empty results folder ("fresh") or resumed one, the wall time of `make main` and the
-step-time table of its workflow run. The headline tables are the report's own (evaluate/report.py), cut to the
+step-time table of its workflow run. The headline tables are the report's own (evaluate/*_tables.py), cut to the
 columns that carry the comparison; the full tables stay in `<results>/report/tables/`. A figure that is quoted
 anywhere else (README, docs) must be copied from a card: `tests/test_results_card.py` checks the README's.
 """
@@ -23,9 +23,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from avatarlab.errors import ConfigError
-from avatarlab.evaluate import report
+from avatarlab.evaluate.avatar_tables import final_avatar_table
 from avatarlab.evaluate.claims import RULE, claims_table
+from avatarlab.evaluate.model_tables import preprocessing_table, pretraining_table
 from avatarlab.evaluate.runs import load_avatars
+from avatarlab.evaluate.speech_tables import speech_table
 from avatarlab.evaluate.table import Table, read_json
 from avatarlab.io import atomic_path
 from avatarlab.workflow import step_times
@@ -113,8 +115,8 @@ def cut(table: Table, columns: list[str], title: str | None = None, note: str | 
 
 def headline_tables(results: Path, final: str, scale: str) -> list[str]:
     avatars = load_avatars(results)
-    finals, _ = report.final_avatar_table(avatars, final)
-    speech = report.speech_table(results, scale)
+    finals, _ = final_avatar_table(avatars, final)
+    speech = speech_table(results, scale)
     real = Table("speech_real", "Speech on real clips (lip error, % IOD, motion only)", speech.columns,
                  "Against a still mouth on the same frames; gain_iod > 0: the model is better; a gain is one only "
                  "beyond clip_gain_ci95.")
@@ -122,11 +124,11 @@ def headline_tables(results: Path, final: str, scale: str) -> list[str]:
     claims = claims_table(results, avatars, final, scale)
     claims.note = RULE
     return [
-        cut(report.pretraining_table(results), ["model", "iterations", "psnr_head", "mean_colour_psnr_head",
+        cut(pretraining_table(results), ["model", "iterations", "psnr_head", "mean_colour_psnr_head",
                                                 "nearest_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips"]),
         cut(finals, ["subject", "seeds", "test_frames", "psnr", "psnr_ci95", "best_baseline", "baseline_psnr",
                      "gain", "gain_ci95", "ssim", "st_lpips", "face_detection_rate"]),
-        cut(report.preprocessing_table(results), ["subject", "interp_xvfi_psnr", "interp_farneback_psnr",
+        cut(preprocessing_table(results), ["subject", "interp_xvfi_psnr", "interp_farneback_psnr",
                                                   "interp_crossfade_psnr", "interp_gain_vs_farneback_db",
                                                   "interp_gain_vs_farneback_ci95", "interp_gain_vs_crossfade_db",
                                                   "interp_gain_vs_crossfade_ci95"],

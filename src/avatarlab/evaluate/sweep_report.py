@@ -12,7 +12,7 @@ import logging
 import sys
 from pathlib import Path
 
-from avatarlab.evaluate.report import save_figure
+from avatarlab.evaluate.figures import save_figure
 from avatarlab.evaluate.scoring import LOWER_IS_BETTER
 from avatarlab.evaluate.table import Table
 from avatarlab.io import atomic_path

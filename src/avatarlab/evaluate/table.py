@@ -64,3 +64,23 @@ class Table:
 
 def read_json(path: Path):
     return json.loads(path.read_text()) if path.is_file() else None
+
+
+def gain_columns(part: dict, metric: str) -> dict:
+    """best baseline's name and value, and the model's gain over it, for one metric of one evaluated part."""
+    g = part["gain"].get(metric)
+    if g is None:
+        return {"best_baseline": None, "baseline": None, "gain": None}
+    return {"best_baseline": g["best_baseline"], "baseline": g["baseline"], "gain": g["gain"]}
+
+
+def not_beating(table: Table, label_keys: tuple[str, ...], gain_key: str = "gain") -> str:
+    """A sentence naming the rows whose gain over their best baseline is not positive."""
+    rows = [r for r in table.rows if r.get(gain_key) is not None]
+    losers = [" / ".join(str(r.get(k)) for k in label_keys) for r in rows if r[gain_key] <= 0]
+    if not rows:
+        return "No row has a baseline comparison."
+    if not losers:
+        return f"Every row ({len(rows)}) beats its best trivial baseline."
+    return (f"{len(losers)} of {len(rows)} rows do NOT beat their best trivial baseline: {', '.join(losers)}. "
+            "Their numbers say nothing about the method.")

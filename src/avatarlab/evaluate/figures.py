@@ -1,0 +1,88 @@
+"""The report's figures: quality against fine-tuning time and against render time (dissertation figures 57-58) with
+the baselines drawn as lines, the published methods on their own axes, and copies of the steps' figures."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from avatarlab.evaluate.published import PUBLISHED_SECONDS, PUBLISHED_TABLE2
+from avatarlab.io import atomic_path
+
+
+def save_figure(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def quality_figures(avatars: list[dict], final: str, folder: Path) -> list[Path]:
+    """Figures 57-58 for this run: test quality against fine-tuning time (a curve per avatar, from the weights kept
+    part-way) and against render time per frame, each subject's best trivial baseline drawn as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    finals = [a for a in avatars if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a"
+              and a["seed"] == 0]
+    colours = {s: f"C{i}" for i, s in enumerate(sorted({a["subject"] for a in avatars}))}
+    written = []
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.8))
+    for a in finals:
+        curve = [pt for pt in a["eval"].get("curve", []) if pt.get("seconds") is not None]
+        base = a["eval"]["all"]["baselines"]
+        for ax, metric in zip(axes, ("psnr", "ssim")):
+            if curve:
+                ax.plot([pt["seconds"] for pt in curve], [pt[metric] for pt in curve], "o-", ms=3,
+                        color=colours[a["subject"]], label=f"{a['subject']} (final recipe)")
+            best = max(base.values(), key=lambda b: b[metric])[metric]
+            ax.axhline(best, ls="--", lw=1, color=colours[a["subject"]], alpha=0.7)
+    for ax, label in zip(axes, ("test PSNR (dB)", "test SSIM")):
+        ax.set_xlabel("fine-tuning time on this CPU (s)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7)
+    fig.suptitle("quality vs creation time (dashed: each subject's best trivial baseline on the same frames)",
+                 fontsize=9)
+    fig.tight_layout()
+    written.append(save_figure(fig, folder / "time_vs_quality.png"))
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    for a in (a for a in avatars if a["variant"] == "a"):
+        m = a["eval"]["all"]["model"]
+        ax.scatter(a["eval"]["render_seconds_per_frame"], m["psnr"], s=14, color=colours[a["subject"]],
+                   marker="o" if a["recipe"] == "final" else ".", alpha=0.8)
+    for subject, colour in colours.items():
+        runs = [a for a in avatars if a["subject"] == subject]
+        if runs:
+            best = max(runs[0]["eval"]["all"]["baselines"].values(), key=lambda b: b["psnr"])["psnr"]
+            ax.axhline(best, ls="--", lw=1, color=colour, label=f"{subject}: best baseline")
+    ax.set_xlabel("render time per frame, CPU (s)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title("quality vs render time (o final recipe, . ablation fine-tunes)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    written.append(save_figure(fig, folder / "render_time_vs_quality.png"))
+    fig, ax = plt.subplots(figsize=(5, 3.6))  # the published methods on their own axes (other data and hardware)
+    for row in PUBLISHED_TABLE2:
+        ax.scatter(PUBLISHED_SECONDS[row["method"]], row["psnr"], s=30)
+        ax.annotate(row["method"], (PUBLISHED_SECONDS[row["method"]], row["psnr"]), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel("creation time on an RTX 4090 (s), published")
+    ax.set_ylabel("PSNR (dB), published")
+    ax.set_title("dissertation figure 57 (published numbers)", fontsize=9)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return written + [save_figure(fig, folder / "published_time_vs_quality.png")]
+
+
+def copy_figure(src: Path, dst: Path) -> Path | None:
+    if not src.is_file():
+        return None
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    return dst
