@@ -12,13 +12,8 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import nn
 
+from avatarlab.headmodel.joints import COEFFICIENT_RANGE, POSE_DIM, POSE_JOINTS  # noqa: F401 (re-exported)
 from avatarlab.headmodel.sources import HeadModelData
-
-#: Pose layout of FLAME: root (global), neck, jaw, left eye, right eye; 3 axis-angle values each.
-POSE_JOINTS = ("root", "neck", "jaw", "eye_left", "eye_right")
-POSE_DIM = 3 * len(POSE_JOINTS)
-#: Shape, expression and texture coefficients are meaningful in this range (seed 002, section 2.2).
-COEFFICIENT_RANGE = (-2.0, 2.0)
 
 
 def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:

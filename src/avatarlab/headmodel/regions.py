@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.path import Path as PolygonPath
 
-from avatarlab.headmodel.flame import POSE_JOINTS
+from avatarlab.headmodel.joints import POSE_JOINTS
 
 EYES = [POSE_JOINTS.index("eye_left"), POSE_JOINTS.index("eye_right")]
 OUTLINE = list(range(0, 17)) + list(range(26, 16, -1))  # the jaw contour, then the brows right to left

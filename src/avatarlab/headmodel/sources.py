@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
+from avatarlab.headmodel.regions import derived_regions
+
 log = logging.getLogger(__name__)
 
 
@@ -221,8 +223,6 @@ def load_flame2020(model_path, landmark_path, texture_path=None, n_shape_total: 
     else:
         log.warning("head model: no FLAME texture space given; using a flat grey albedo")
         albedo = flat_grey_albedo(arrays["v_template"].shape[0])
-    from avatarlab.headmodel.regions import derived_regions
-
     regions = derived_regions(arrays["v_template"], arrays["faces"], arrays["lbs_weights"], idx, bary)
     return HeadModelData(**arrays, lmk_faces_idx=idx, lmk_bary_coords=bary, albedo=albedo,
                          source=f"flame2020:{Path(model_path).name}", regions=regions)
