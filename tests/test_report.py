@@ -151,3 +151,17 @@ def test_the_rgb_fit_substitution_states_the_configured_jaw_limits():
     low, high = config["fit_rgb"]["jaw_limits_deg"]
     row = next(ours for what, _, ours, _ in SUBSTITUTIONS if what == "RGB fit")
     assert f"fit_rgb.jaw_limits_deg ([{low:g}, {high:g}] degrees)" in row
+
+
+def test_figure_rows_and_columns_are_labelled_and_readable():
+    import numpy as np
+
+    from avatarlab.evaluate.figures import labelled_grid
+
+    rows = [(name, np.full((32, 32 * 4, 3), value, np.uint8)) for name, value in
+            (("truth", 40), ("avatar", 120), ("best baseline: nearest", 200))]
+    image = labelled_grid(rows, [f"test frame {i}" for i in (8, 9, 10, 11)])
+    cell = 32 * 5  # enlarged to at least 160 px
+    assert image.shape == (28 + 3 * cell, 150 + 4 * cell, 3)
+    assert (image[28 + cell // 2, 150 + 10] == 40).all() and (image[28 + cell + 5, 150 + 10] == 120).all() and (image[28 + 2 * cell + 5, 150 + 3 * cell + 5] == 200).all()
+    assert (image[28:, :150] < 128).any() and (image[:28, 150:] < 128).any(), "row and column labels are drawn"

@@ -24,6 +24,7 @@ from avatarlab.data.splits import avatar_split, mouth_open_subset
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.evaluate import baselines
+from avatarlab.evaluate.figures import labelled_grid
 from avatarlab.evaluate.scoring import gains, image_scores
 from avatarlab.io import write_json, write_png
 from avatarlab.metrics import STLPIPS, face_metrics, lpips_metric, psnr, ssim
@@ -127,7 +128,15 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
 def main(cfg, device) -> None:
     report, grid = evaluate_avatar(cfg, device)
     out = Path(cfg.evaluate.out)
-    write_png(out.with_name("test_frames.png"), to_uint8(grid[None])[0])
+    rows = to_uint8(grid[None])[0]  # truth, avatar, best baseline, stacked
+    height = rows.shape[0] // 3
+    best = report["all"]["gain"]["psnr"]["best_baseline"]
+    labels = ("truth", "avatar", f"best baseline: {best}")
+    frames = report["test_indices"]
+    shown = np.linspace(0, len(frames) - 1, rows.shape[1] // height).round().astype(int)
+    write_png(out.with_name("test_frames.png"), labelled_grid(
+        [(label, rows[i * height:(i + 1) * height]) for i, label in enumerate(labels)],
+        [f"test frame {frames[i]}" for i in shown]))
     write_json(out, report)
     for part, prefix in (("all", "test_all"), ("mouth_open", "test_mouth_open")):
         log_to_run(cfg, report["run_id"], report[part]["model"], report[part]["baselines"], report[part]["gain"],

@@ -5,6 +5,8 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from avatarlab.evaluate.published import PUBLISHED_SECONDS, PUBLISHED_TABLE2
 from avatarlab.io import atomic_path
 
@@ -86,3 +88,26 @@ def copy_figure(src: Path, dst: Path) -> Path | None:
     with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
     return dst
+
+
+def labelled_grid(rows: list[tuple[str, np.ndarray]], columns: list[str], min_cell: int = 160) -> np.ndarray:
+    """A figure of image rows (each (H, W*k, 3) uint8, k cells side by side) with each row's label on the left and
+    each column's on top, cells enlarged (nearest neighbour) to at least `min_cell` pixels: what a reader of the
+    report can read. -> (H', W', 3) uint8."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    h = rows[0][1].shape[0]
+    k = len(columns)
+    scale = max(1, -(-min_cell // h))
+    cell = h * scale
+    left, top = 150, 28
+    canvas = Image.new("RGB", (left + k * cell, top + len(rows) * cell), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default(size=15)
+    for c, label in enumerate(columns):
+        draw.text((left + c * cell + 6, 6), label, fill="black", font=font)
+    for r, (label, image) in enumerate(rows):
+        big = Image.fromarray(image).resize((image.shape[1] * scale, h * scale), Image.NEAREST)
+        canvas.paste(big, (left, top + r * cell))
+        draw.multiline_text((6, top + r * cell + cell // 2 - 10), label.replace(": ", ":\n"), fill="black", font=font)
+    return np.asarray(canvas)
