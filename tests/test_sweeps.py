@@ -125,3 +125,24 @@ def test_sweep_table_reads_only_the_seeds_the_workflow_ran(tmp_path):
     assert [r["seeds"] for r in rows] == ["2", "2"] and [float(r["psnr"]) for r in rows] == [26.5, 26.5]
     with pytest.raises(FileNotFoundError):  # the file's three seeds: seed 2 was never run
         main(["--sweep", str(spec), "--dir", str(folder)])
+
+
+def test_a_far_baseline_does_not_flatten_the_sweeps_points():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from avatarlab.evaluate.sweep_report import baseline_line
+
+    fig, (near, far) = plt.subplots(1, 2)
+    points = [22.40, 22.45, 22.50]
+    for ax in (near, far):
+        ax.plot([0, 1, 2], points)
+    baseline_line(near, 22.3, "last_frame", points)
+    baseline_line(far, 34.0, "last_frame", points)
+    assert near.get_ylim()[1] - near.get_ylim()[0] < 1 and any(line.get_ydata()[0] == 22.3 for line in near.lines[1:])
+    low, high = far.get_ylim()
+    assert high - low < 0.2 and high < 34.0, "the axis keeps to the points"
+    assert any("34.00 above" in t.get_text() for t in far.texts)
+    plt.close(fig)

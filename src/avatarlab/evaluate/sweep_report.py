@@ -85,6 +85,23 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     return table, rows
 
 
+def baseline_line(ax, value: float, name: str, points: list[float]) -> None:
+    """The best baseline as a dashed line where it lies near the points; far from them (a baseline 10 dB away would
+    flatten 0.1 dB differences) the axis keeps to the points and an arrow at its edge gives the baseline's value."""
+    low, high = min(points), max(points)
+    span = max(high - low, 1e-6)
+    label = f"best baseline ({name}): {value:.2f}"
+    if low - 2 * span <= value <= high + 2 * span:
+        ax.axhline(value, ls="--", lw=1, color="C3", label=label)
+        return
+    ax.set_ylim(low - 0.3 * span, high + 0.3 * span)
+    above = value > high
+    ax.annotate(f"{label} {'above' if above else 'below'}", xy=(0.5, 0.98 if above else 0.02),
+                xycoords="axes fraction", ha="center", va="top" if above else "bottom", fontsize=7, color="C3",
+                arrowprops=None)
+    ax.plot([], [], ls="--", color="C3", label=label)
+
+
 def figure(sweep: Sweep, rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -103,7 +120,7 @@ def figure(sweep: Sweep, rows: list[dict], path: Path) -> None:
         ax.errorbar(list(x), [s[0] for s in stats], yerr=[s[1] or 0.0 for s in stats], fmt="o-", capsize=4)
         for i, k in enumerate(labels):
             ax.scatter([i] * len(groups[k]), groups[k], s=8, color="grey", alpha=0.6)
-        ax.axhline(rows[0]["baseline"], ls="--", lw=1, color="C3", label=f"best baseline ({rows[0]['best_baseline']})")
+        baseline_line(ax, rows[0]["baseline"], rows[0]["best_baseline"], [v for k in labels for v in groups[k]])
         ax.set_xticks(list(x), labels, fontsize=8)
         ax.set_xlabel(key)
         ax.set_ylabel(f"test {sweep.metric}")
