@@ -18,6 +18,7 @@ import logging
 import shutil
 from pathlib import Path
 
+from avatarlab.entry import entry_point
 from avatarlab.evaluate.avatar_tables import (
     alpha_paired_table,
     alpha_table,
@@ -122,6 +123,7 @@ def write_report(results: Path, out: Path, final: str, scale: str) -> dict:
     return summary
 
 
+@entry_point(READS)
 def main(cfg, device) -> None:
     rep = cfg.report
     summary = build(Path(rep.results_dir), Path(rep.out_dir), str(rep.final_recipe), cfg.report.scale)
