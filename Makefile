@@ -52,8 +52,10 @@ main: setup system
 	@mkdir -p results && { [ -d results/$(SCALE) ] && state=resumed || state=fresh; echo "$$(date +%s) $$state" > $(START); }
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --logger avatarlab --config scale=$(SCALE)
 	$(BIN)/python -m avatarlab.evaluate.results_card --results results/$(SCALE) --start $(START)
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
-	  --report results/$(SCALE)/report/workflow_report.html
+	@mkdir -p logs && PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
+	  --report results/$(SCALE)/report/workflow_report.html > logs/workflow_report.log 2>&1 && \
+	  echo "HTML report: results/$(SCALE)/report/workflow_report.html (its log: logs/workflow_report.log)" || \
+	  { tail -20 logs/workflow_report.log; exit 1; }
 
 test: setup system browser cluster lint
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest

@@ -113,6 +113,12 @@ def cut(table: Table, columns: list[str], title: str | None = None, note: str | 
     return short.markdown()
 
 
+def interpolated(table: Table) -> Table:
+    """The preprocessing table's rows of the subjects the interpolation experiment scored."""
+    table.rows = [r for r in table.rows if r.get("interp_xvfi_psnr") is not None]
+    return table
+
+
 def headline_tables(results: Path, final: str, scale: str) -> list[str]:
     avatars = load_avatars(results)
     finals, _ = final_avatar_table(avatars, final)
@@ -128,7 +134,7 @@ def headline_tables(results: Path, final: str, scale: str) -> list[str]:
                                                 "nearest_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips"]),
         cut(finals, ["subject", "seeds", "test_frames", "psnr", "psnr_ci95", "best_baseline", "baseline_psnr",
                      "gain", "gain_ci95", "ssim", "st_lpips", "face_detection_rate"]),
-        cut(preprocessing_table(results), ["subject", "interp_xvfi_psnr", "interp_farneback_psnr",
+        cut(interpolated(preprocessing_table(results)), ["subject", "interp_xvfi_psnr", "interp_farneback_psnr",
                                                   "interp_crossfade_psnr", "interp_gain_vs_farneback_db",
                                                   "interp_gain_vs_farneback_ci95", "interp_gain_vs_crossfade_db",
                                                   "interp_gain_vs_crossfade_ci95"],
