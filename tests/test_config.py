@@ -57,3 +57,4 @@ def test_cli_lists_commands(capsys):
     assert cli_main([]) == 2
     out = capsys.readouterr().out
     assert all(name in out for name in COMMANDS)
+    assert {"run", "status", "add-subject", "report", "dashboard", "clean", "render-demo"} <= set(COMMANDS)

@@ -155,6 +155,10 @@ def clean(args) -> int:
     return 0
 
 
+#: every command, in the order `avatarlab --help` lists them
+COMMANDS = ("run", "status", "add-subject", "report", "dashboard", "clean", *STEPS)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatarlab", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
