@@ -114,14 +114,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def mark_dead_runs_killed(results_dir: str | Path, experiments: list[str], ids: list[str] | None = None) -> int:
-    """Runs still RUNNING whose process (pid tag, on this host) is gone become KILLED (in the named experiments, or
-    the experiment ids given). -> how many."""
+def mark_dead_runs_killed(results_dir: str | Path, ids: list[str]) -> int:
+    """Runs still RUNNING in the experiments `ids` whose process (pid tag, on this host) is gone become KILLED.
+    -> how many."""
     mlflow = _mlflow(results_dir)
     client = mlflow.tracking.MlflowClient()
     host, count = socket.gethostname(), 0
-    if ids is None:
-        ids = [e.experiment_id for e in (mlflow.get_experiment_by_name(n) for n in experiments) if e is not None]
     if not ids:
         return 0
     for run in client.search_runs(ids, "attributes.status = 'RUNNING'", max_results=5000):
@@ -159,10 +157,10 @@ def set_dashboard_view(experiment_id: str, results_dir: str | Path) -> None:
 
 def init_store(results_dir: str | Path, scales=("smoke", "tiny", "paper")) -> str:
     Path(results_dir).mkdir(parents=True, exist_ok=True)
-    names = [experiment_name(s) for s in scales]
-    for name in names:
-        set_dashboard_view(ensure_experiment(name, results_dir), results_dir)
-    killed = mark_dead_runs_killed(results_dir, names)
+    ids = [ensure_experiment(experiment_name(s), results_dir) for s in scales]
+    for experiment_id in ids:
+        set_dashboard_view(experiment_id, results_dir)
+    killed = mark_dead_runs_killed(results_dir, ids)
     if killed:
         log.info("%d runs left RUNNING by a process that no longer exists are now KILLED", killed)
     return tracking_uri(results_dir)
@@ -191,7 +189,7 @@ def start_run(cfg, stage: str, run_name: str, tags: dict | None = None, run_id: 
     experiment_id = ensure_experiment(tr.experiment, cfg.paths.results)
     mlflow.set_experiment(experiment_id=experiment_id)
     # a step killed with kill -9 (or a lost node) left its run RUNNING: every step's start closes such runs
-    if mark_dead_runs_killed(cfg.paths.results, [], [experiment_id]):
+    if mark_dead_runs_killed(cfg.paths.results, [experiment_id]):
         log.info("runs left RUNNING by processes that no longer exist are now KILLED")
     all_tags = {"stage": stage, "scale": tr.scale, "git_sha": git_sha(), "pid": str(os.getpid()),
                 "host": socket.gethostname(),

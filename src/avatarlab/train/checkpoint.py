@@ -34,12 +34,6 @@ class Checkpoint:
         log.info("resuming from %s at iteration %d", self.path, state["step"])
         return state
 
-    def load_step(self) -> int | None:
-        """The iteration the saved checkpoint holds (None without one)."""
-        if not self.path.is_file():
-            return None
-        return int(load_tensors(self.path, "a training checkpoint")["step"])
-
     def save(self, state: dict) -> None:
         with atomic_path(self.path) as tmp:
             torch.save({**state, "fingerprint": self.fingerprint}, tmp)

@@ -207,6 +207,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
         torch.set_rng_state(state["torch_rng"])
         step, seconds, history = int(state["step"]), float(state["seconds"]), list(state["history"])
     reported = len(history)
+    saved_at = step if state is not None else None  # the iteration the checkpoint on disk holds
     ema = WeightAverage(net, recipe.ema_decay, (state or {}).get("ema")) if recipe.ema_decay > 0 else None
     stream = BatchStream(source, step, recipe.schedule.N, g)
     net.train()
@@ -219,8 +220,8 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                 group["lr"] = base * factor
             entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device)
             if not math.isfinite(entry["loss"]):
-                kept = (f"the last checkpoint, of iteration {int(checkpoint.load_step())}, is kept in {checkpoint.path}"
-                        if checkpoint.path.is_file() else "no checkpoint was written yet")
+                kept = (f"the last checkpoint, of iteration {saved_at}, is kept in {checkpoint.path}"
+                        if saved_at is not None else "no checkpoint was written yet")
                 raise TrainingError(f"{checkpoint.path.parent}: training stopped at iteration {step + 1} of "
                                     f"{recipe.schedule.N}: the loss is {entry['loss']} (not finite; an input may hold a "
                                     f"NaN or an infinity, or the learning rate is too high); {kept}")
@@ -244,6 +245,7 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
                                  else None, "generator": stream.resume_state(), "torch_rng": torch.get_rng_state(),
                                  "step": step, "seconds": seconds, "history": history,
                                  "ema": ema.state_dict() if ema is not None else None, **(extra or {})})
+                saved_at = step
                 if on_progress is not None:
                     on_progress(history[reported:])
                 reported = len(history)
