@@ -2,8 +2,9 @@
 
 At the fine-tuning step: replace every test frame of a subject (its image, mask, landmarks and fitted expression and
 pose) with noise, and the trained weights, the chosen snapshot and everything the step writes are bit-identical; only
-the evaluation changes. (The preprocessing before it still fits a subject's identity on all its frames: see
-docs/method.md, "The validation wall".)
+the evaluation changes. At the RGB fit: noise in the test and validation frames leaves the identity (shape, texture,
+focal length, lighting) and every training frame's fit bit-identical; only the held-out frames' own expression, pose
+and camera change (they are the test input that drives the avatar).
 """
 from __future__ import annotations
 
@@ -103,3 +104,40 @@ def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp
     assert clean[0] == noised[0], "every file the fine-tuning step wrote is the same, byte for byte"
     assert clean[1] == noised[1] and clean[2] == noised[2], "the same snapshot chosen on the same validation scores"
     assert clean[3] != pytest.approx(noised[3], abs=1e-3), "only the evaluation sees the test frames"
+
+
+@pytest.mark.parametrize("clips", [None, [0] * 6 + [1] * 4 + [2] * 3 + [3] * 3], ids=["last_frames", "held_out_clips"])
+def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
+    from avatarlab.data.synthetic_subject import render_subject
+    from avatarlab.preprocess.fit_rgb import fit_video, identity_frames
+    from helpers import compose_config
+
+    clip_overrides = ["fit_rgb.held_out.test_clips=1", "fit_rgb.held_out.validation_clips=1"] if clips else \
+        ["fit_rgb.held_out.test_frames=4", "fit_rgb.held_out.validation_frames=2"]
+    cfg = compose_config(["scale=smoke", "scale.subject_frames=16", "fit_rgb.lighting_per_clip=false", "scale.fit_keyframe_iterations=30",
+                          "scale.fit_frame_iterations=15",
+                          *clip_overrides])
+    truth = render_subject(cfg)
+    frames, landmarks, masks = truth["video"], truth["landmarks2d"], truth["masks"]
+    clips = None if clips is None else np.array(clips)
+    seen = identity_frames(cfg.fit_rgb, clips, len(frames))
+    assert seen.sum() == 10
+    found = np.ones(len(frames), bool)
+
+    def fit(video, points, mask):
+        torch.manual_seed(0)
+        _, _, shared, result, fitted, key, *_ = fit_video(cfg, video, points, found, mask, clips=clips)
+        assert seen[key].all() and fitted.all()
+        return shared, result
+
+    rng = np.random.default_rng(3)
+    video, points, mask = frames.copy(), landmarks.copy(), masks.copy()
+    video[~seen] = rng.integers(0, 256, video[~seen].shape, dtype=np.uint8)
+    points[~seen] += rng.normal(0, 3, points[~seen].shape)
+    mask[~seen] = rng.random(mask[~seen].shape) > 0.5
+    (shared, result), (noisy_shared, noisy_result) = fit(frames, landmarks, masks), fit(video, points, mask)
+    for key in ("shape", "texture", "lighting", "focal"):
+        assert torch.equal(shared[key], noisy_shared[key]), key
+    for key in ("expression", "pose", "rot", "trans"):
+        assert torch.equal(result[key][seen], noisy_result[key][seen]), key
+    assert not torch.equal(result["expression"][~seen], noisy_result["expression"][~seen])

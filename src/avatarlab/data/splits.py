@@ -35,6 +35,32 @@ class Split:
         return np.union1d(self.train, self.validation)
 
 
+def held_out(clips: np.ndarray, test_frames: int, test_clips: int = 0, validation_frames: int = 0,
+             validation_clips: int = 0, source: str = "the subject") -> tuple[np.ndarray, np.ndarray, str]:
+    """Which frames an avatar is tested and validated on, from the frame count and clips alone (so preprocessing
+    can keep them out of the identity fit before anything is fitted). clips (N,) clip index of each frame ->
+    (in_test (N,) bool, in_validation (N,) bool, protocol)."""
+    n = len(clips)
+    idx = np.arange(n)
+    if test_clips > 0:
+        order = list(dict.fromkeys(np.asarray(clips).tolist()))
+        if len(order) <= test_clips + validation_clips:
+            raise InputError(f"{source}: {len(order)} clip(s) cannot hold out {test_clips} clip(s) for testing"
+                             + (f" and {validation_clips} for validation" if validation_clips else "")
+                             + " and still train on another (finetune.test_clips, finetune.validation_clips)")
+        in_test = np.isin(clips, order[-test_clips:])
+        in_validation = np.isin(clips, order[len(order) - test_clips - validation_clips:len(order) - test_clips])
+        return in_test, in_validation, "held_out_clips"
+    if n < 2 * test_frames + validation_frames:
+        raise InputError(f"{source}: {n} frames are too few for {test_frames} test frames"
+                         + (f", {validation_frames} validation frames" if validation_frames else "")
+                         + " and at least as many training frames as test frames (finetune.test_frames="
+                         f"{test_frames}, finetune.validation_frames={validation_frames})")
+    in_test = idx >= n - test_frames
+    in_validation = (idx >= n - test_frames - validation_frames) & ~in_test
+    return in_test, in_validation, "last_frames"
+
+
 def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_clips: int = 0, variant: str = "a",
                   interpolated=(), source: str = "the subject", validation_frames: int = 0,
                   validation_clips: int = 0) -> Split:
@@ -44,24 +70,8 @@ def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_
         raise InputError(f"finetune.frames_variant={variant!r}: expected a, b or c")
     n = len(fitted)
     idx = np.arange(n)
-    if test_clips > 0:
-        order = list(dict.fromkeys(clips.tolist()))
-        if len(order) <= test_clips + validation_clips:
-            raise InputError(f"{source}: {len(order)} clip(s) cannot hold out {test_clips} clip(s) for testing"
-                             + (f" and {validation_clips} for validation" if validation_clips else "")
-                             + " and still train on another (finetune.test_clips, finetune.validation_clips)")
-        in_test = np.isin(clips, order[-test_clips:])
-        in_validation = np.isin(clips, order[len(order) - test_clips - validation_clips:len(order) - test_clips])
-        protocol = "held_out_clips"
-    else:
-        if n < 2 * test_frames + validation_frames:
-            raise InputError(f"{source}: {n} frames are too few for {test_frames} test frames"
-                             + (f", {validation_frames} validation frames" if validation_frames else "")
-                             + " and at least as many training frames as test frames (finetune.test_frames="
-                             f"{test_frames}, finetune.validation_frames={validation_frames})")
-        in_test = idx >= n - test_frames
-        in_validation = (idx >= n - test_frames - validation_frames) & ~in_test
-        protocol = "last_frames"
+    in_test, in_validation, protocol = held_out(clips, test_frames, test_clips, validation_frames, validation_clips,
+                                                source)
     test = idx[in_test & fitted]
     validation = idx[in_validation & fitted]
     in_train = ~in_test & ~in_validation & fitted

@@ -24,6 +24,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import DictConfig
 
 from avatarlab.config import CPU
+from avatarlab.data.splits import held_out
 from avatarlab.data.subject_dir import SubjectDir
 from avatarlab.entry import entry_point
 from avatarlab.geometry import procrustes_error_mm
@@ -202,10 +203,24 @@ def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.
     return lighting, losses
 
 
+def identity_frames(fit, clips: np.ndarray | None, n: int, source: str = "the subject") -> np.ndarray:
+    """(n,) bool: the frames the shared identity (shape, texture, focal, lighting) may be fitted on: all but the
+    avatar's test and validation frames (`fit_rgb.held_out`, the split of data/splits.py), so that nothing a test
+    frame shows reaches the avatar except its own expression, pose and camera (and, for a held-out clip, that
+    clip's lighting): the preprocessing side of the validation wall."""
+    h = fit.held_out
+    in_test, in_validation, _ = held_out(np.zeros(n, int) if clips is None else np.asarray(clips),
+                                         int(h.test_frames), int(h.test_clips), int(h.validation_frames),
+                                         int(h.validation_clips), source)
+    return ~(in_test | in_validation)
+
+
 def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found: np.ndarray, masks: np.ndarray,
-              device: torch.device = CPU, clips: np.ndarray | None = None):
+              device: torch.device = CPU, clips: np.ndarray | None = None, source: str = "the subject"):
     """Fits on `device` (the model, frames and parameters live there); the results stay there too. `clips`: each
-    frame's clip (video mode: more than one gives one lighting per clip, when the config asks for it)."""
+    frame's clip (video mode: more than one gives one lighting per clip, when the config asks for it). Video mode
+    takes its keyframes (the identity) among the frames `identity_frames` allows; the held-out frames are fitted
+    last, in chunks of their own, with the identity fixed."""
     fit = cfg.fit_rgb
     model = load_head_model(cfg.head_model).to(device)
     size = frames.shape[1]
@@ -219,8 +234,13 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
         raise ValueError("no frame has landmarks: nothing to fit")
     rvecs, tvecs = pnp_extrinsics(model, landmarks[idx], K0)
     yaw = yaw_of(rvecs)
-    n_key = max(1, min(int(fit.max_keyframes), len(idx) // 4 if len(idx) >= 4 else 1))
-    key_local = choose_keyframes(yaw, n_key)
+    allowed = identity_frames(fit, clips, len(frames), source)[idx] if fit.mode == "video" else np.ones(len(idx), bool)
+    if not allowed.any():
+        raise ValueError(f"{source}: no frame with landmarks outside the test and validation split to fit the "
+                         "identity on (fit_rgb.held_out)")
+    candidates = np.nonzero(allowed)[0]
+    n_key = max(1, min(int(fit.max_keyframes), len(candidates) // 4 if len(candidates) >= 4 else 1))
+    key_local = candidates[choose_keyframes(yaw[candidates], n_key)]
     images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
     mask_t = torch.from_numpy(masks[:, None]).float().to(device)
     lm_t = torch.from_numpy(np.nan_to_num(landmarks)).float().to(device)
@@ -245,13 +265,17 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     fitted[key] = True
     log.info("keyframes %s (yaw %s deg) fitted in %.1fs, loss %.4f -> %.4f", key.tolist(),
              np.round(yaw[key_local]).astype(int).tolist(), time.perf_counter() - start, hist_key[0], hist_key[-1])
-    rest = [i for i in idx if i not in set(key.tolist())]
+    keys = set(key.tolist())
+    seen = [i for i, ok in zip(idx.tolist(), allowed) if ok and i not in keys]
+    unseen = [i for i, ok in zip(idx.tolist(), allowed) if not ok]
     chunk = int(fit.chunk)
+    batches = [seen[c:c + chunk] for c in range(0, len(seen), chunk)] + \
+        [unseen[c:c + chunk] for c in range(0, len(unseen), chunk)]
     rvec_of = dict(zip(idx.tolist(), rvecs))
     tvec_of = dict(zip(idx.tolist(), tvecs))
     hist_rest = []
-    for c in range(0, len(rest), chunk):
-        ids = np.array(rest[c:c + chunk])
+    for batch in batches:
+        ids = np.array(batch)
         done = np.nonzero(fitted)[0]
         nearest = done[np.abs(done[None, :] - ids[:, None]).argmin(1)]
         init = dict(shared, expression=result["expression"][nearest].clone(), pose=result["pose"][nearest].clone(),
@@ -377,7 +401,7 @@ def main(cfg, device) -> None:
         masks = mk["masks"]
     clips = subject.frame_clips()
     model, fitter, shared, result, fitted, key, seconds, hist = fit_video(cfg, frames, landmarks, found, masks,
-                                                                          device, clips)
+                                                                          device, clips, str(subject_dir))
     images = (torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255).to(device)
     out, camera, report = evaluate_fit(fitter, shared, result, fitted, images, np.nan_to_num(landmarks), found,
                                        masks)

@@ -174,6 +174,8 @@ class Plan:
             values["preprocess.truth"] = truth[0]
         if subject in self.image_sets:
             values["fit_rgb.mode"] = "images"
+        else:  # the identity fit keeps out the frames its avatar is tested on
+            values["fit_rgb.held_out.test_clips"] = self.test_clips(subject)
         for key, target, kind in (("fps", "preprocess.fps", float), ("max_frames", "preprocess.max_frames", int)):
             if spec.get(key) is not None:
                 values[target] = kind(spec[key])
