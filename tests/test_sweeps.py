@@ -146,3 +146,27 @@ def test_a_far_baseline_does_not_flatten_the_sweeps_points():
     assert high - low < 0.2 and high < 34.0, "the axis keeps to the points"
     assert any("34.00 above" in t.get_text() for t in far.texts)
     plt.close(fig)
+
+
+def test_a_sweep_chooses_on_validation_and_the_test_only_scores(tmp_path):
+    """The setting marked `chosen` is the one with the best validation PSNR (train.json), even where another scores
+    better on the test frames; without validation scores nothing is chosen and the note says so."""
+    spec = tmp_path / "ema.yaml"
+    spec.write_text("step: finetune\nsubject: s\ninit: alpha1\noverrides: {finetune.ema_decay: '0.0,0.99', seed: range(2)}\n")
+    sweep = load_sweep(spec)
+    folder = tmp_path / "results"
+    for p in sweep.points:
+        averaged = p.values["finetune.ema_decay"] > 0
+        fake_point(folder, p.name, 26.0 + (0.0 if averaged else 1.0) + 0.1 * p.seed, 0.25)
+    table, rows = summarise(sweep, folder)
+    assert all(r["chosen"] == "" and r["validation_psnr"] is None for r in rows)
+    assert "chooses nothing" in table.note
+    for p in sweep.points:
+        averaged = p.values["finetune.ema_decay"] > 0
+        (folder / p.name / "train.json").write_text(json.dumps({"validation_psnr": 24.0 + averaged + 0.01 * p.seed}))
+    table, rows = summarise(sweep, folder)
+    chosen = [r for r in rows if r["chosen"] == "chosen"]
+    assert len(chosen) == 1 and chosen[0]["finetune.ema_decay"] == 0.99
+    assert chosen[0]["validation_psnr"] == pytest.approx(25.005)
+    assert chosen[0]["differs_from_best"] != "best"  # the test's best is the other one: a score, not the choice
+    assert "best mean validation PSNR" in table.note and "| chosen |" in table.markdown()

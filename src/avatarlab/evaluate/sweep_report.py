@@ -41,11 +41,34 @@ def also_columns(sweep: Sweep, runs: list) -> dict:
     return out
 
 
+def validation_score(folder: Path) -> float | None:
+    """The validation PSNR a fine-tuning point chose its avatar on (its train.json), None without a validation split."""
+    path = folder / "train.json"
+    if not path.is_file():
+        return None
+    return json.loads(path.read_text()).get("validation_psnr")
+
+
+def mark_chosen(rows: list[dict]) -> str | None:
+    """Marks the setting with the best mean validation PSNR `chosen` (the choice; the test columns only score it);
+    without validation scores for every setting nothing is chosen. -> the note's sentence about it."""
+    for r in rows:
+        r["chosen"] = ""
+    if not rows or any(r["validation_psnr"] is None for r in rows):
+        return ("No validation split (finetune.validation_frames / validation_clips = 0): this sweep chooses nothing; "
+                "its best-on-test row is a score, not a choice.")
+    pick = max(rows, key=lambda r: r["validation_psnr"])
+    pick["chosen"] = "chosen"
+    return ("chosen: the setting with the best mean validation PSNR (frames held out before the test frames, "
+            "train.json); the test columns only score it.")
+
+
 def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     by_setting: dict[tuple, list] = {}
     for point in sweep.points:
         report = json.loads((folder / point.name / "eval.json").read_text())
-        by_setting.setdefault(point.setting, []).append((point, *point_scores(sweep, report)))
+        by_setting.setdefault(point.setting, []).append((point, *point_scores(sweep, report),
+                                                         validation_score(folder / point.name)))
     swept = [k for k in sweep.keys if k != SEED_KEY]
     sd, dof = pooled_sd([[s[1] for s in runs] for runs in by_setting.values()])
     rows = []
@@ -54,7 +77,9 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
         gain, gain_ci, _ = mean_ci(s[2] for s in runs)
         rows.append({**{k: v for k, v in setting}, "seeds": n, sweep.metric: mean, f"{sweep.metric}_ci95": ci,
                      "gain": gain, "gain_ci95": gain_ci, "best_baseline": runs[0][3], "baseline": runs[0][4],
-                     **also_columns(sweep, runs), "values": [s[1] for s in runs]})
+                     **also_columns(sweep, runs), "values": [s[1] for s in runs],
+                     "validation_psnr": None if any(s[6] is None for s in runs) else mean_ci(s[6] for s in runs)[0]})
+    choice = mark_chosen(rows)
     lower = sweep.metric in LOWER_IS_BETTER
     best = (min if lower else max)(rows, key=lambda r: r[sweep.metric])
     threshold = single_run_threshold(sd)
@@ -66,7 +91,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
             limit = 1.96 * sd * ((1 / r["seeds"] + 1 / best["seeds"]) ** 0.5)
             r["differs_from_best"] = ("best" if r is best else
                                       "yes" if r["worse_than_best"] > limit else "no (within noise)")
-    columns = swept + ["seeds", sweep.metric, f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline",
+    columns = swept + ["seeds", "validation_psnr", "chosen", sweep.metric, f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline",
                        "baseline", "worse_than_best", "differs_from_best"]
     columns += [c for name in sweep.also for c in (name, f"{name}_ci95")]
     note = (f"{sweep.description or sweep.name}. {len(sweep.points)} points ({sweep.step}); metric: test "
@@ -77,6 +102,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
                                                            if sd is not None else " (one seed per setting: no verdict)."))
     if threshold is not None:
         note += f" Two single runs differ beyond noise above {threshold:.2f}."
+    note += " " + choice
     if sweep.also:
         note += f" Beside it, each setting's mean and 95 % CI over seeds of: {', '.join(sweep.also)}."
     table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note)
