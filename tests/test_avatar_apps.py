@@ -91,12 +91,16 @@ def test_report_tables_carry_baselines_label_published_rows_and_never_invent_num
     assert table.rows[-1]["psnr"] == 24.0 and table.rows[-1]["lpips"] is None
     assert table.rows[-1]["best_baseline_psnr"] == "20.00 (last_frame)"
     md = table.markdown()
-    assert "| published | proposed (dissertation) | INSTA, 256x256 | 26.2867 | 0.8952 | 0.0461 |" in md
+    assert "| published | proposed (dissertation) | INSTA, 256x256 | 26.29 | 0.895 | 0.046 |" in md
+    assert table.csv().count("26.2867") == 1  # the CSV keeps every digit
     assert "| this run |" in md and "missing" in md
     interp = interp_table(avatars, "beta6_from_alpha2")
     assert [r["variant"] for r in interp.rows] == ["a", "b", "c"]
     assert interp.rows[2]["gain_c_over_b_db"] == pytest.approx(0.5)
     assert "1 of 3 rows do NOT beat their best trivial baseline: s / a" in interp.note
+    assert interp.sentence() == ("s / a does NOT beat its best baseline (last_frame) (-1.00); s / b beats its best "
+                                 "baseline (last_frame) by 3.00 (one run: no noise estimate); s / c beats its best "
+                                 "baseline (last_frame) by 3.50 (one run: no noise estimate).")
     interp.write(tmp_path)
     with open(tmp_path / "interpolation.csv") as f:
         rows = list(csv.DictReader(f))
@@ -106,3 +110,33 @@ def test_report_tables_carry_baselines_label_published_rows_and_never_invent_num
     assert [r["predictor"] for r in per_predictor.rows] == ["model", "last_frame", "mean_frame"]
     empty = Table("t", "T", ["a", "b"])
     assert "(no runs)" in empty.markdown()
+
+
+def test_a_table_shows_eight_columns_rounded_to_its_noise_and_says_which_row_is_best():
+    """What a reader sees: at most 8 columns (the others named, all in the CSV), a value with its CI rounded to the
+    CI's first significant digit + 1, the best row marked, and one sentence on whether it beats its baseline beyond
+    the noise."""
+    from avatarlab.evaluate.table import Headline, rounded
+
+    columns = ["model", "psnr", "psnr_ci95", "best_baseline", "gain", "gain_ci95"] + [f"x{i}" for i in range(6)]
+    table = Table("t", "T", columns, "a note", headline=Headline("psnr", ("model",)))
+    table.add(model="a", psnr=23.4567, psnr_ci95=0.123, best_baseline="last_frame", gain=0.4321, gain_ci95=0.6,
+              **{f"x{i}": float(i) for i in range(6)})
+    table.add(model="b", psnr=24.9876, psnr_ci95=0.0456, best_baseline="last_frame", gain=1.9876, gain_ci95=0.0456,
+              **{f"x{i}": float(i) for i in range(6)})
+    md = table.markdown()
+    header = next(line for line in md.splitlines() if line.startswith("| model"))
+    assert header.count("|") - 1 == 8 and "x5" not in header
+    assert "More columns in `t.csv`: x4, x5." in md
+    assert "| **b** (best) | 24.988 ± 0.046 | last_frame | 1.988 ± 0.046 |" in md
+    assert "| a | 23.46 ± 0.12 | last_frame | 0.43 ± 0.60 |" in md
+    assert table.sentence() == ("Best by psnr (higher is better): b (24.988); b beats its best baseline (last_frame) "
+                                "by 1.988, beyond the 95 % CI (±0.046).")
+    table.rows[1]["gain"] = 0.02
+    assert "within the noise" in table.sentence()
+    table.rows[1]["gain"] = -0.5
+    assert "does NOT beat its best baseline (last_frame)" in table.sentence()
+    page = table.html()
+    assert '<tr class="best"><td><b>b</b> (best)</td>' in page and "<th>x3</th>" in page and "<th>x4</th>" not in page
+    assert "24.9876" in table.csv() and rounded(0.000123) == "0.000123" and rounded(1234.56) == "1234.6"
+    assert rounded(None) == "missing" and rounded(float("nan")) == "not finite"

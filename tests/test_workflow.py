@@ -300,6 +300,7 @@ def test_results_card(smoke_run, workdir, tmp_path):
     """`make main`'s last step on the smoke run: provenance, the run's step times and the headline tables, each
     model number beside its best baseline; every number the card's claims quote is the report's."""
     from avatarlab.evaluate import results_card
+    from avatarlab.evaluate.table import rounded
 
     start = tmp_path / "start"
     start.write_text(f"{time.time() - 125:.0f} fresh\n")
@@ -315,14 +316,25 @@ def test_results_card(smoke_run, workdir, tmp_path):
         assert f"### {title}" in card, title
     with open(smoke_run / "smoke" / "report" / "tables" / "final_avatars.csv") as f:
         finals = list(csv.DictReader(f))
-    for row in finals:  # the model's PSNR, its best baseline's and the CI, as the report has them
+    for row in finals:  # the model's PSNR with its CI, its best baseline's and the gain, as the report has them
         line = next(x for x in card.splitlines() if x.startswith(f"| {row['subject']} | 2 |"))
-        for key in ("psnr", "psnr_ci95", "baseline_psnr", "gain"):
-            assert f" {float(row[key]):.4f} " in line, (key, line)
+        ci = float(row["psnr_ci95"])
+        assert f" {rounded(float(row['psnr']), ci)} ± {rounded(ci, ci)} " in line, line
+        assert f" {rounded(float(row['baseline_psnr']))} " in line, line
+        assert f" {rounded(float(row['gain']), float(row['gain_ci95']))} ± " in line, line
+        assert f"{row['subject']} {'beats' if float(row['gain']) > 0 else 'does NOT beat'} its best baseline" in card
     assert "One rule decides every verdict" in card
     quoted = "synth_talk scores " + line.split(" | ")[3] + " dB"
     assert results_card.numbers_not_in(quoted, card) == []
     assert results_card.numbers_not_in("a made-up 31.4159 dB", card) == ["31.4159"]
+    # the HTML report's landing page shows the same tables, rendered (not a download)
+    landing = (smoke_run / "smoke" / "report" / "landing.html").read_text()
+    assert landing.count("<table>") == 6 and f"<td>{finals[0]['subject']}</td>" in landing
+    report = tmp_path / "report.html"
+    run_snakemake(workdir, "--report", str(report), "--config", "scale=smoke", "seeds=2", "threads_per_job=1")
+    page = report.read_text()
+    psnr = rounded(float(finals[0]["psnr"]), float(finals[0]["psnr_ci95"]))
+    assert "Results card" in page and f"<td>{finals[0]['subject']}</td>" in page and psnr in page
 
 
 @pytest.mark.slow

@@ -18,6 +18,9 @@ STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("
 SCALE = STEPS.compose().scale
 PLAN = Plan(config, sweep_dir=REPO / "conf" / "sweep", scale=SCALE)
 RESULTS, LOGS = PLAN.results, PLAN.logs
+LANDING = Path(RESULTS, "report", "landing.html")  # the results card's tables: the HTML report's front page
+if LANDING.is_file():
+    config["report_landing"] = str(LANDING.resolve())
 TRACKING_READY = "results/mlflow.ready"
 # per kind of step (light, fit, train, finetune, speech): cpus (= threads locally), mem_mb, runtime, gpu; a cluster
 # executor (profiles/slurm) turns them into each job's request. `threads_per_job` overrides the cpus locally.

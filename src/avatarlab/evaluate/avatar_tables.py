@@ -6,7 +6,7 @@ from __future__ import annotations
 from avatarlab.evaluate.claims import PUBLISHED_INTERP_GAIN_DB
 from avatarlab.evaluate.published import PUBLISHED_TABLE2
 from avatarlab.evaluate.runs import seed_noise, seeded_runs
-from avatarlab.evaluate.table import Table, gain_columns, not_beating
+from avatarlab.evaluate.table import Headline, Table, gain_columns, not_beating
 from avatarlab.seed_stats import mean_ci, paired_difference, single_run_threshold
 
 SEEDED = ("psnr", "gain", "ssim", "st_lpips")
@@ -60,7 +60,9 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
                   "held_out_clips (every frame of a clip the avatar never saw). colour_matched_gain: a diagnostic, "
                   "the head-region PSNR gain over the best baseline when every prediction (model and baselines "
                   "alike) first takes each test frame's mean colour: structure without a recording's overall "
-                  "colour, which a clip never seen can have its own of.")
+                  "colour, which a clip never seen can have its own of.",
+                  shown=["subject", "seeds", "test_frames", "psnr", "baseline_psnr", "gain", "ssim", "st_lpips"],
+                  headline=Headline("psnr", ("subject",), each=True))
     for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
         runs = seeded_runs(avatars, subject, "final", final)
         if runs:
@@ -69,7 +71,9 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
                  ["subject", "predictor", "psnr", "psnr_head", "psnr_head_colour", "ssim", "st_lpips",
                   "face_detection_rate", "landmark_nme", "identity_similarity"],
                  "Seed 0's avatar (the baselines do not depend on the seed). psnr_head_colour: head-region PSNR "
-                 "with each frame's mean colour matched to the truth's first.")
+                 "with each frame's mean colour matched to the truth's first.",
+                 shown=["subject", "predictor", "psnr", "psnr_head", "ssim", "st_lpips", "face_detection_rate",
+                        "identity_similarity"])
     for a in avatars:
         if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             part = a["eval"]["all"]
@@ -83,7 +87,9 @@ def alpha_table(avatars: list[dict]) -> Table:
     table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
                   "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,
                   "The mouth-open subset = the test frames with the widest fitted jaw opening (the dissertation: 30 "
-                  "per subject). alpha2 adds the mouth interior in its last pretraining phase.")
+                  "per subject). alpha2 adds the mouth interior in its last pretraining phase.",
+                  shown=["subject", "init", "subset", "seeds", "psnr", "gain", "ssim", "st_lpips"],
+                  headline=Headline("psnr", ("subject", "init", "subset"), each=True))
     for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
         for init in ("alpha1", "alpha2"):
             runs = seeded_runs(avatars, subject, "base", init)
@@ -127,7 +133,10 @@ def beta_table(avatars: list[dict]) -> Table:
                   "beta's PSNR (same subject) minus this row's; differs_from_best says whether that exceeds the "
                   "seed-to-seed noise, 1.96 x sqrt(2) x the pooled seed-to-seed SD of test PSNR measured on the "
                   + (f"seeded avatars ({sd:.3f} dB, {dof} degrees of freedom: threshold {threshold:.2f} dB)."
-                     if sd is not None else "seeded avatars (none here: no verdict)."))
+                     if sd is not None else "seeded avatars (none here: no verdict)."),
+                  shown=["subject", "init", "psnr", "gain", "mouth_open_psnr", "below_best_db", "differs_from_best",
+                         "st_lpips"],
+                  headline=Headline("psnr", ("subject", "init"), gain_ci=None))
     betas = [a for a in avatars if a["recipe"] == "base" and "_from_" in a["init"] and a["variant"] == "a"
              and a["seed"] == 0]
     ablated = {s for s in {a["subject"] for a in betas} if sum(a["subject"] == s for a in betas) > 1}
@@ -187,7 +196,10 @@ def interp_table(avatars: list[dict], final: str) -> Table:
                   "second frame dropped, (c) (b) + interpolated frames (base recipe)",
                   AVATAR_COLUMNS + ["gain_c_over_b_db"],
                   f"Published: (c) is {PUBLISHED_INTERP_GAIN_DB} dB PSNR above (b). Variant (c)'s new frames come from "
-                  "the XVFI-style network; their parameters are the neighbours' mean (no fit of the new frame).")
+                  "the XVFI-style network; their parameters are the neighbours' mean (no fit of the new frame).",
+                  shown=["subject", "variant", "test_frames", "psnr", "best_baseline", "gain", "gain_c_over_b_db",
+                         "st_lpips"],
+                  headline=Headline("psnr", ("subject", "variant"), gain_ci=None, each=True))
     by_subject: dict[str, dict] = {}
     for a in avatars:
         if a["recipe"] == "base" and a["init"] == final and a["seed"] == 0:

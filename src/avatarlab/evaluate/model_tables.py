@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from avatarlab.evaluate.runs import load_runs
-from avatarlab.evaluate.table import Table, gain_columns, not_beating, read_json
+from avatarlab.evaluate.table import Headline, Table, gain_columns, not_beating, read_json
 
 
 def preprocessing_table(results: Path) -> Table:
@@ -23,7 +23,11 @@ def preprocessing_table(results: Path) -> Table:
                   "cross-fade) on the same held-out frames (only those between two frames of one clip); the gains "
                   "are its mean per-frame PSNR gain over each baseline with the 95 % CI over frames: a gain is one "
                   "only when it exceeds its CI. interp_still_flow_px: flows shorter than it were not warped, the "
-                  "length chosen for the subject on its own kept frames.")
+                  "length chosen for the subject on its own kept frames.",
+                  shown=["subject", "frames", "landmarks_found", "mask_iou", "fit_landmark_px", "fit_shape_mm",
+                         "interp_xvfi_psnr", "interp_gain_vs_crossfade_db"],
+                  ci_columns={"interp_gain_vs_crossfade_db": "interp_gain_vs_crossfade_ci95",
+                              "interp_gain_vs_farneback_db": "interp_gain_vs_farneback_ci95"})
     for folder in sorted(p for p in (results / "subjects").glob("*") if (p / "fit_rgb.json").is_file()):
         lm, masks, fit = (read_json(folder / f) or {} for f in ("landmarks.json", "masks.json", "fit_rgb.json"))
         rgbd, interp = read_json(folder / "fit_rgbd.json") or {}, read_json(folder / "interp.json") or {}
@@ -60,7 +64,10 @@ def pretraining_table(results: Path) -> Table:
                   "psnr_head: PSNR over the head region (true mask) - the background is grey in every image and "
                   "would flatter a full-image PSNR; gain = psnr_head minus the best baseline's (mean colour inside "
                   "the mask; the training sample nearest in shape, expression, neck, jaw and camera). The "
-                  "dissertation's claim: alpha renders match FLAME renders at PSNR ~30 dB (paper scale).")
+                  "dissertation's claim: alpha renders match FLAME renders at PSNR ~30 dB (paper scale).",
+                  shown=["model", "iterations", "seconds", "psnr_head", "mean_colour_psnr_head", "nearest_psnr_head",
+                         "gain", "st_lpips"],
+                  headline=Headline("psnr_head", ("model",), gain_ci=None, baseline=None))
     for run in load_runs(results, "pretrain/*"):
         if run["name"].startswith("renderer_"):
             continue

@@ -28,7 +28,7 @@ from avatarlab.evaluate.claims import RULE, claims_table
 from avatarlab.evaluate.model_tables import preprocessing_table, pretraining_table
 from avatarlab.evaluate.runs import load_avatars
 from avatarlab.evaluate.speech_tables import speech_table
-from avatarlab.evaluate.table import Table, read_json
+from avatarlab.evaluate.table import Headline, Table, read_json
 from avatarlab.io import atomic_path
 from avatarlab.workflow import step_times
 
@@ -105,12 +105,14 @@ def provenance(start_file: Path | None, log: Path | None, now: datetime) -> list
     return ["| | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows]
 
 
-def cut(table: Table, columns: list[str], title: str | None = None, note: str | None = None) -> str:
-    """The table with only `columns` (in that order), its note kept unless another is given."""
-    short = Table(table.name, title or table.title, [c for c in columns if c in table.columns],
-                  table.note if note is None else note)
+def cut(table: Table, columns: list[str], title: str | None = None, note: str | None = None) -> Table:
+    """The table as the card shows it: only `columns` (in that order, at most 8), its note kept unless another is
+    given, its headline (best row, sentence) and CI columns kept."""
+    short = Table(table.name, title or table.title, table.columns, table.note if note is None else note,
+                  shown=[c for c in columns if c in table.columns], headline=table.headline,
+                  ci_columns=table.ci_columns)
     short.rows = table.rows
-    return short.markdown()
+    return short
 
 
 def interpolated(table: Table) -> Table:
@@ -119,32 +121,54 @@ def interpolated(table: Table) -> Table:
     return table
 
 
-def headline_tables(results: Path, final: str, scale: str) -> list[str]:
+def headline_tables(results: Path, final: str, scale: str) -> list[Table]:
     avatars = load_avatars(results)
     finals, _ = final_avatar_table(avatars, final)
     speech = speech_table(results, scale)
     real = Table("speech_real", "Speech on real clips (lip error, % IOD, motion only)", speech.columns,
                  "Against a still mouth on the same frames; gain_iod > 0: the model is better; a gain is one only "
-                 "beyond clip_gain_ci95.")
+                 "beyond its clip-level 95 % CI.", ci_columns=speech.ci_columns,
+                 headline=Headline("gain_iod", ("method", "data"), gain="gain_iod",
+                                   gain_ci="clip_gain_ci95"))
     real.rows = [r for r in speech.rows if r.get("source") == "this run" and "real" in str(r.get("data"))]
     claims = claims_table(results, avatars, final, scale)
     claims.note = RULE
+    preprocessing = interpolated(preprocessing_table(results))
+    preprocessing.headline = Headline("interp_xvfi_psnr", ("subject",), gain="interp_gain_vs_crossfade_db",
+                                      gain_ci="interp_gain_vs_crossfade_ci95", baseline=None, each=True,
+                                      versus="the cross-fade")
     return [
         cut(pretraining_table(results), ["model", "iterations", "psnr_head", "mean_colour_psnr_head",
-                                                "nearest_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips"]),
-        cut(finals, ["subject", "seeds", "test_frames", "psnr", "psnr_ci95", "best_baseline", "baseline_psnr",
-                     "gain", "gain_ci95", "ssim", "st_lpips", "face_detection_rate"]),
-        cut(interpolated(preprocessing_table(results)), ["subject", "interp_xvfi_psnr", "interp_farneback_psnr",
-                                                  "interp_crossfade_psnr", "interp_gain_vs_farneback_db",
-                                                  "interp_gain_vs_farneback_ci95", "interp_gain_vs_crossfade_db",
-                                                  "interp_gain_vs_crossfade_ci95"],
+                                         "nearest_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips"]),
+        cut(finals, ["subject", "seeds", "test_frames", "psnr", "baseline_psnr", "gain", "ssim", "st_lpips"]),
+        cut(preprocessing, ["subject", "interp_xvfi_psnr", "interp_farneback_psnr", "interp_crossfade_psnr",
+                            "interp_gain_vs_farneback_db", "interp_gain_vs_crossfade_db"],
             "Frame interpolation on held-out frames (PSNR, dB), beside Farneback flow and the cross-fade",
             "The XVFI-style network and its two baselines on the same held-out frames (those between two frames of "
             "one clip); gains: its mean per-frame PSNR gain over each baseline with the 95 % CI over frames."),
-        cut(real, ["method", "data", "motion_error_iod", "baseline_iod", "gain_iod", "clip_gain_ci95", "wins",
-                   "fine_tuning_seeds"]),
+        cut(real, ["method", "data", "motion_error_iod", "baseline_iod", "gain_iod", "wins", "fine_tuning_seeds"]),
         cut(claims, ["claim", "published", "this_run", "noise", "verdict"]),
     ]
+
+
+LANDING_STYLE = ("<style>.avatarlab table{border-collapse:collapse;margin:.4em 0 1.2em}.avatarlab td,.avatarlab th"
+                 "{border:1px solid #ccc;padding:2px 8px;text-align:right;font-size:13px}.avatarlab td:first-child,"
+                 ".avatarlab th:first-child{text-align:left}.avatarlab tr.best{background:#eef7ee}.avatarlab p.note,"
+                 ".avatarlab p.more{font-size:12px;color:#555;max-width:70em}</style>")
+
+
+def landing_html(provenance_rows: list[str], tables: list[Table]) -> str:
+    """The HTML report's landing (workflow/report/workflow.rst includes it): the provenance and the headline tables,
+    rendered (not a download)."""
+    import html
+
+    rows = [line.strip("|").split(" | ", 1) for line in provenance_rows[2:]]
+    facts = "".join(f"<tr><th>{html.escape(k.strip())}</th><td>{html.escape(v.strip(' |'))}</td></tr>"
+                    for k, v in rows)
+    return (LANDING_STYLE + '<div class="avatarlab"><h2>Results card</h2><p>Every number below was written by this '
+            "run; each stands beside its best trivial baseline on the same frames and its 95 % CI. The full "
+            "tables are in the categories below and in <code>report/tables/</code>.</p>"
+            f"<table>{facts}</table>" + "".join(t.html() for t in tables) + "</div>\n")
 
 
 def write_card(results: Path, final: str, scale: str, start_file: Path | None, log: Path | None,
@@ -155,18 +179,20 @@ def write_card(results: Path, final: str, scale: str, start_file: Path | None, l
     lines = [f"# Results card: scale `{scale}`", "",
              "Every number below was written by this one run of `make main`; each stands beside its best trivial "
              "baseline on the same frames and its 95 % CI. The full tables: `report/tables/`.", "",
-             "## Provenance", ""] + provenance(start_file, log, now)
+             "## Provenance", ""] + (facts := provenance(start_file, log, now))
     if log is not None:
         try:
             lines += ["", "## Step times", "", step_times.table(step_times.parse_log(log), os.cpu_count() or 1)]
         except ConfigError as err:
             lines += ["", "## Step times", "", f"not read: {err}"]
-    lines += ["", "## Headline tables", ""]
-    lines += headline_tables(results, final, scale)
+    tables = headline_tables(results, final, scale)
+    lines += ["", "## Headline tables", ""] + [t.markdown() for t in tables]
     out = results / "report" / "RESULTS.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
+    with atomic_path(out.with_name("landing.html")) as tmp:
+        tmp.write_text(landing_html(facts, tables))
     return out
 
 

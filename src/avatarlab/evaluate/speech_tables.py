@@ -46,7 +46,10 @@ def speech_table(results: Path, scale: str) -> Table:
                   "over the still mouth, wins: clips where the model beats it. A gain is one only when it exceeds "
                   "its CI. fine_tuning_seeds: the fine-tuned rows' per-clip mean gain over the still mouth (the "
                   "gain clip_gain_ci95 belongs to) in every fine-tuning seed (speech.adapt_seeds; the row is the "
-                  "first), and in how many seeds it exceeds its CI.")
+                  "first), and in how many seeds it exceeds its CI.",
+                  shown=["source", "method", "data", "motion_error_iod", "best_baseline", "baseline_iod", "gain_iod",
+                         "wins"],
+                  ci_columns={"gain_iod": "clip_gain_ci95"})
     for row in PUBLISHED_SPEECH:
         table.add(source="published", data="GRID", **row)
     for key, label in SPEECH_MODELS.items():
@@ -92,7 +95,9 @@ def speech_timing_table(results: Path) -> Table:
                   "trivial predictor from the audio alone is its loudness (log RMS over the video frame's own 40 ms: "
                   "loudness_frame, or over the model's own input window: loudness_window), and best_baseline is the "
                   "better of the two on these clips. gain_r: the per-clip paired gain over it, clip_gain_ci95 its "
-                  "95 % CI half-width over clips; verdict 'better' / 'worse' only beyond that CI.")
+                  "95 % CI half-width over clips; verdict 'better' / 'worse' only beyond that CI.",
+                  shown=["method", "data", "opening_r", "best_baseline", "baseline_r", "gain_r", "wins", "verdict"],
+                  ci_columns={"gain_r": "clip_gain_ci95"})
     for method, speaker, r in real_speech_rows(results):
         t = r.get("opening_timing")
         if not t:

@@ -105,7 +105,9 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     note += " " + choice
     if sweep.also:
         note += f" Beside it, each setting's mean and 95 % CI over seeds of: {', '.join(sweep.also)}."
-    table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note)
+    shown = swept + ["seeds", "validation_psnr", "chosen", sweep.metric, "gain", "differs_from_best"]
+    table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note,
+                  shown=shown + list(sweep.also)[:max(0, 8 - len(shown))])
     for r in sorted(rows, key=lambda r: tuple(str(r[k]) for k in swept)):
         table.add(**{k: (str(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()})
     return table, rows
