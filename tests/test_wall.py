@@ -108,9 +108,10 @@ def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp
 
 @pytest.mark.parametrize("clips", [None, [0] * 6 + [1] * 4 + [2] * 3 + [3] * 3], ids=["last_frames", "held_out_clips"])
 def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
+    from helpers import compose_config
+
     from avatarlab.data.synthetic_subject import render_subject
     from avatarlab.preprocess.fit_rgb import fit_video, identity_frames
-    from helpers import compose_config
 
     clip_overrides = ["fit_rgb.held_out.test_clips=1", "fit_rgb.held_out.validation_clips=1"] if clips else \
         ["fit_rgb.held_out.test_frames=4", "fit_rgb.held_out.validation_frames=2"]

@@ -3,80 +3,29 @@
 
 
 rule finetune_avatar:
+    """Every avatar. Its folder name is its key (workflow/layout.py): <init> (seed 0, all training frames),
+    <init>_seed<k> (another seed: batch order, synthetic samples, offsets; the seed-to-seed spread every comparison
+    of avatars is judged against), <init>_frames<b|c> (the interpolation experiment, base recipe: (b) every second
+    training frame dropped, (c) (b) + the dropped frames re-created by the frame interpolator)."""
     input:
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
+        interpolated=lambda wc: interpolated_input(avatar_key(wc)),
+        model=lambda wc: f"{RESULTS}/pretrain/{avatar_key(wc).init}/model.pt",
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}/model.pt",
-        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}/train.json",
+        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/model.pt",
+        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/train.json",
     log:
-        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{init}}.log",
+        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{avatar}}.log",
     params:
         **step_params(
-            "avatarlab.train.finetune", extra=lambda wc: (f"finetune={wc.recipe}",),
-            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model),
-                                              "finetune.init_model": input.model},
-            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.init}/.hydra"),
-    threads: step_threads("finetune")
-    resources:
-        **step_resources("finetune"),
-    conda:
-        "../envs/avatarlab.yaml"
-    shell:
-        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
-
-
-rule finetune_avatar_seed:
-    """The same avatar with another seed (batch order, synthetic samples, offsets): the seed-to-seed spread that
-    every comparison of avatars is judged against."""
-    input:
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
-        tracking=TRACKING_READY,
-    output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}/model.pt",
-        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}/train.json",
-    log:
-        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{init}}_seed{{seed}}.log",
-    params:
-        **step_params(
-            "avatarlab.train.finetune", extra=lambda wc: (f"finetune={wc.recipe}", f"seed={wc.seed}"),
-            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model),
-                                              "finetune.init_model": input.model},
-            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.init}_seed{wc.seed}/.hydra"),
-    threads: step_threads("finetune")
-    resources:
-        **step_resources("finetune"),
-    conda:
-        "../envs/avatarlab.yaml"
-    shell:
-        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
-
-
-rule finetune_interp_variant:
-    """The interpolation experiment's avatars (base recipe): (b) every second training frame dropped, (c) (b) + the
-    dropped frames re-created by the frame interpolator. Variant (a) is the base avatar of the same init."""
-    input:
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        interpolated=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
-        model=f"{RESULTS}/pretrain/{{init}}/model.pt",
-        tracking=TRACKING_READY,
-    output:
-        model=f"{RESULTS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}/model.pt",
-        train=f"{RESULTS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}/train.json",
-    log:
-        f"{LOGS}/avatars/{{subject}}/base/{{init}}_frames{{variant}}.log",
-    params:
-        **step_params(
-            "avatarlab.train.finetune", extra=lambda wc: ("finetune=base",),
-            values=lambda wc, input, output: {**finetune_values(wc.subject, wc.init, output.model, wc.variant),
+            "avatarlab.train.finetune", extra=lambda wc: finetune_choices(avatar_key(wc)),
+            values=lambda wc, input, output: {**PLAN.finetune_values(avatar_key(wc), output.model),
                                               "finetune.init_model": input.model,
-                                              "finetune.interpolated": input.interpolated},
-            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/base/{wc.init}_frames{wc.variant}/.hydra"),
+                                              **({"finetune.interpolated": input.interpolated[0]}
+                                                 if input.interpolated else {})},
+            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra"),
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),
@@ -94,8 +43,7 @@ rule evaluate_avatar:
         fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
         masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
         landmarks=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
-        interpolated=lambda wc: ([f"{RESULTS}/subjects/{wc.subject}/interpolated.npz"]
-                                 if avatar_variant(wc)[1] == "c" else []),
+        interpolated=lambda wc: interpolated_input(avatar_key(wc)),
         tracking=TRACKING_READY,
     output:
         report=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/eval.json",
@@ -107,8 +55,8 @@ rule evaluate_avatar:
         **step_params(
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={wc.recipe}",),
             values=lambda wc, input, output: {
-                **finetune_values(wc.subject, avatar_variant(wc)[0], input.model, avatar_variant(wc)[1]),
-                "seed": avatar_variant(wc)[2], "evaluate.model": input.model, "evaluate.out": output.report,
+                **PLAN.finetune_values(avatar_key(wc), input.model),
+                "seed": avatar_key(wc).seed, "evaluate.model": input.model, "evaluate.out": output.report,
                 **({"finetune.interpolated": input.interpolated[0]} if input.interpolated else {})},
             run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra/eval"),
     threads: step_threads("light")

@@ -9,6 +9,7 @@ sys.path.insert(0, str(REPO / "src"))
 from snakemake.utils import validate  # noqa: E402
 
 from avatarlab.workflow.steps import Steps, chosen_scale, interpreter_first_on_path  # noqa: E402
+from avatarlab.workflow.layout import AvatarKey, alternation, avatar_folder_pattern  # noqa: E402
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 interpreter_first_on_path()  # `.venv/bin/snakemake` works without an activated venv
@@ -50,6 +51,7 @@ wildcard_constraints:
     init="|".join(PLAN.initialisations),
     tier="|".join(t.name for t in PLAN.tiers) or "(?!)",  # (?!): no tier at this scale matches nothing
     recipe="base|final",
+    avatar=avatar_folder_pattern(PLAN.initialisations),
     variant="b|c",
     seed="[1-9][0-9]*",
     speech_model="|".join(PLAN.speech_models),

@@ -28,20 +28,21 @@ def pretrain_step(name, strategy, extra, **values):
 
 
 # (avatar.smk)
-def finetune_values(subject, init, model, variant="a"):
-    """The values naming an avatar: its subject, initialisation, folder (that of its model.pt) and frames variant."""
-    return {**PLAN.subject_values(subject), "finetune.subject": subject, "finetune.subject_dir": PLAN.subject_dir(subject),
-            "finetune.init_name": init, "finetune.test_clips": PLAN.test_clips(subject),
-            "finetune.frames_variant": variant, "finetune.out_dir": str(Path(model).parent)}
+def avatar_key(wc):
+    """The key (subject, recipe, init, frames variant, seed) of the avatar folder a job's wildcards name."""
+    return AvatarKey.parse(wc.subject, wc.recipe, wc.avatar)
 
 
 # (avatar.smk)
-def avatar_variant(wc):
-    """init, frames variant and seed of an avatar folder name (<init>, <init>_frames<b|c> or <init>_seed<k>)."""
-    name, seed = wc.avatar, 0
-    if "_seed" in name:
-        name, seed = name.rsplit("_seed", 1)[0], int(name.rsplit("_seed", 1)[1])
-    return (name[:-8], name[-1], seed) if name[-8:-1] == "_frames" else (name, "a", seed)
+def interpolated_input(key):
+    """Variant (c) trains on the interpolated frames too."""
+    return [f"{PLAN.subject_dir(key.subject)}/interpolated.npz"] if key.variant == "c" else []
+
+
+# (avatar.smk)
+def finetune_choices(key):
+    """The config-group choices of a fine-tuning: its recipe and, for seed k > 0, the seed."""
+    return (f"finetune={key.recipe}",) + ((f"seed={key.seed}",) if key.seed else ())
 
 
 # (avatar.smk)
@@ -63,19 +64,21 @@ def speech_audio():
 
 # (pretrain.smk)
 def control_figure_names():
-    """A wildcard constraint: the figures of control_figures (never empty: an empty alternation would match '')."""
-    import re
-
-    return "|".join(re.escape(n) for n in PLAN.control_figures) or "no-control-figure"
+    """A wildcard constraint: the figures of control_figures."""
+    return alternation(PLAN.control_figures)
 
 
 # (sweeps.smk)
 def sweep_names(step):
-    """A wildcard constraint: the sweeps of one kind of step (never empty: an empty alternation would match '')."""
-    import re
+    """A wildcard constraint: the sweeps of one kind of step."""
+    return alternation(n for n, s in PLAN.sweeps.items() if s.step == step)
 
-    names = [re.escape(n) for n, s in PLAN.sweeps.items() if s.step == step]
-    return "|".join(names) or "no-sweep-of-this-kind"
+
+# (sweeps.smk)
+def sweep_avatar(wc):
+    """The avatar a fine-tuning sweep's points vary (its subject, recipe and initialisation)."""
+    sweep = PLAN.sweeps[wc.sweep]
+    return AvatarKey(sweep.subject, sweep.recipe, sweep.init)
 
 
 # (sweeps.smk)

@@ -19,8 +19,7 @@ rule sweep_finetune:
         **step_params(
             "avatarlab.train.finetune",
             extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}", *PLAN.sweep_point(wc.sweep, wc.point).overrides),
-            values=lambda wc, input, output: {**finetune_values(PLAN.sweeps[wc.sweep].subject, PLAN.sweeps[wc.sweep].init,
-                                                                output.model),
+            values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), output.model),
                                               "finetune.init_model": input.model, **sweep_tags(wc)},
             run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra"),
     threads: step_threads("finetune")
@@ -51,8 +50,7 @@ rule sweep_evaluate_avatar:
     params:
         **step_params(
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}",),
-            values=lambda wc, input, output: {**finetune_values(PLAN.sweeps[wc.sweep].subject, PLAN.sweeps[wc.sweep].init,
-                                                                input.model),
+            values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), input.model),
                                               "evaluate.model": input.model, "evaluate.out": output.report},
             run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra/eval"),
     threads: step_threads("light")

@@ -3,11 +3,11 @@ and an eval.json, the avatars with their subject, recipe, initialisation, frame 
 seed-to-seed noise of their test scores."""
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 from avatarlab.evaluate.table import read_json
 from avatarlab.seed_stats import pooled_sd
+from avatarlab.workflow.layout import AvatarKey
 
 
 def load_runs(results: Path, pattern: str) -> list[dict]:
@@ -21,14 +21,11 @@ def load_runs(results: Path, pattern: str) -> list[dict]:
 
 
 def load_avatars(results: Path) -> list[dict]:
-    """avatars/<subject>/<recipe>/<init>[_frames<b|c>][_seed<k>]/."""
+    """avatars/<subject>/<recipe>/<folder>/ (the folder names the key: workflow/layout.py)."""
     avatars = load_runs(results, "avatars/*/*/*")
     for a in avatars:
-        a["subject"], a["recipe"] = a["dir"].parent.parent.name, a["dir"].parent.name
-        a["init"] = a["eval"]["init"]
-        a["variant"] = a["eval"].get("frames_variant", "a")
-        seed = re.search(r"_seed(\d+)$", a["dir"].name)
-        a["seed"] = int(seed.group(1)) if seed else 0
+        key = AvatarKey.parse(a["dir"].parent.parent.name, a["dir"].parent.name, a["dir"].name)
+        a.update(subject=key.subject, recipe=key.recipe, init=key.init, variant=key.variant, seed=key.seed, key=key)
     return avatars
 
 

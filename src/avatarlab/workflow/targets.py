@@ -18,6 +18,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from avatarlab.workflow.layout import VARIANTS, AvatarKey
 from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
@@ -184,13 +185,21 @@ class Plan:
     def test_clips(self, subject: str) -> int:
         return int(self.all_subjects[subject].get("test_clips", 0))
 
+    def finetune_values(self, key: AvatarKey, model: str) -> dict:
+        """The config values naming an avatar (a fine-tuning or its evaluation): its subject (and the subject's own
+        values), initialisation, frames variant, seed and folder (that of its model.pt)."""
+        return {**self.subject_values(key.subject), "finetune.subject": key.subject,
+                "finetune.subject_dir": self.subject_dir(key.subject), "finetune.init_name": key.init,
+                "finetune.test_clips": self.test_clips(key.subject), "finetune.frames_variant": key.variant,
+                "finetune.out_dir": str(Path(model).parent)}
+
     # --- results --------------------------------------------------------------------------------------------------
     def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
         return f"{self.results}/avatars/{subject}/{recipe}/{init}"
 
     def seeded(self, init: str) -> list[str]:
         """The folder names of an avatar's seeded repeats: <init> (seed 0), <init>_seed1, ..."""
-        return [init] + [f"{init}_seed{k}" for k in range(1, self.seeds)]
+        return [AvatarKey("-", "-", init, seed=k).folder for k in range(self.seeds)]
 
     def final_strategy(self) -> str:
         return self.final_recipe.split("_from_")[0]
@@ -229,8 +238,8 @@ class Plan:
             outputs += [f"{self.avatar_dir(subject, 'base', name)}/eval.json" for init in self.alphas
                         for name in self.seeded(init)]
         for subject in self.interp_subjects:
-            outputs += [f"{self.avatar_dir(subject, 'base', self.final_recipe + v)}/eval.json"
-                        for v in ("", "_framesb", "_framesc")]
+            outputs += [f"{AvatarKey(subject, 'base', self.final_recipe, v).path(self.results)}/eval.json"
+                        for v in VARIANTS]
         outputs += [f"{self.results}/apps/{a}/reenact_{s}.mp4" for a, s in self.transfers]
         return sorted(set(outputs))
 
