@@ -58,3 +58,20 @@ def test_cli_lists_commands(capsys):
     out = capsys.readouterr().out
     assert all(name in out for name in COMMANDS)
     assert {"run", "status", "add-subject", "report", "dashboard", "clean", "render-demo"} <= set(COMMANDS)
+
+
+def test_status_names_the_changed_settings_instead_of_two_configs():
+    """A dry run's "Params have changed" reason prints both resolved configs; `avatarlab status` reduces it to the
+    keys that changed (and 'code' when the step's code digest did)."""
+    from avatarlab.cli import changed_settings
+
+    before = "seed: 0\nfit_rgb:\n  lr: 0.01\n  chunk: 16\n  held_out:\n    test_frames: 3\n"
+    now = "seed: 0\nfit_rgb:\n  lr: 0.02\n  held_out:\n    test_frames: 3\n    test_clips: 1\n"
+    block = ("fit_rgb:\n    input: a\n    reason: Params have changed since last execution: Union of exclusive params "
+             f"before and now across all output: before: 'f27a0e66abee6610',{before!r} now: "
+             f"'9fea103b66751803',{now!r} \n    wildcards: subject=s\n")
+    assert changed_settings(block) == ["code", "fit_rgb.chunk (gone)", "fit_rgb.held_out.test_clips (new: 1)",
+                                       "fit_rgb.lr: 0.01 -> 0.02"]
+    same_code = block.replace("'f27a0e66abee6610',", "").replace("'9fea103b66751803',", "")
+    assert changed_settings(same_code)[0] == "fit_rgb.chunk (gone)"
+    assert changed_settings("x:\n    reason: Missing output files: a\n") == []

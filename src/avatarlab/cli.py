@@ -55,6 +55,52 @@ def run(args) -> int:
                      "--config", f"scale={scale}").returncode
 
 
+def _flat(tree, prefix: str = "") -> dict:
+    if isinstance(tree, dict):
+        out = {}
+        for key, value in tree.items():
+            out.update(_flat(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: tree}
+
+
+def changed_settings(block: str) -> list[str]:
+    """The settings keys (and 'code') whose change a dry run's "Params have changed" reason reports, instead of
+    the two resolved configs it prints: e.g. ['fit_rgb.held_out.test_frames: 3 -> 5', 'code']."""
+    import ast
+
+    import yaml
+
+    found = re.search(r"before: (.*?) now: (.*?)\s*$", block.split("reason: ", 1)[-1].split("\n    wildcards:")[0],
+                      re.S)
+    if "Params have changed" not in block or found is None:
+        return []
+
+    def params(text: str) -> list:
+        try:
+            return list(ast.literal_eval("[" + text.strip() + "]"))
+        except (ValueError, SyntaxError):
+            return []
+    before, now = params(found.group(1)), params(found.group(2))
+    digest = re.compile(r"^[0-9a-f]{16}$")
+    out = ["code"] if any(isinstance(p, str) and digest.match(p) for p in before + now) else []
+    old = next((p for p in before if isinstance(p, str) and ":" in p and not digest.match(p)), None)
+    new = next((p for p in now if isinstance(p, str) and ":" in p and not digest.match(p)), None)
+    if old is not None and new is not None:
+        try:
+            a, b = _flat(yaml.safe_load(old)), _flat(yaml.safe_load(new))
+        except yaml.YAMLError:
+            return out
+        for key in sorted(set(a) | set(b)):
+            if key not in a:
+                out.append(f"{key} (new: {b[key]!r})")
+            elif key not in b:
+                out.append(f"{key} (gone)")
+            elif a[key] != b[key]:
+                out.append(f"{key}: {a[key]!r} -> {b[key]!r}")
+    return out
+
+
 def status(args) -> int:
     """Counts of what is done and what would run, per rule, with the reasons Snakemake gives."""
     scale = scale_of(args.scale)
@@ -71,6 +117,9 @@ def status(args) -> int:
         rule = block.split(":", 1)[0].strip()
         reason = re.search(r"reason: ([^\n;:]+)", block)
         why = reason.group(1).strip() if reason else "?"
+        keys = changed_settings(block)
+        if keys:
+            why += " (" + ", ".join(keys) + ")"
         reasons.setdefault(rule, {}).setdefault(why, 0)
         reasons[rule][why] += 1
     total = sum(sum(r.values()) for r in reasons.values())
