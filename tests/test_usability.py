@@ -87,6 +87,13 @@ def test_add_subject_checks_the_subject_writes_it_and_the_workflow_plans_it(tmp_
                             "--config", "scale=smoke")
     counts = jobs_planned(planned)
     assert counts["extract_frames"] >= 1 and counts["evaluate_avatar"] == 1 and counts["finetune_avatar"] == 1, counts
+    # the shared steps (the interpolator, the control figures) read the shared subjects only: adding one reruns neither
+    shared = run_snakemake(tmp_path, "-n", "--cores", "2", "results/smoke/interp/model.pt",
+                           "results/smoke/pretrain/controls/fig30_jaw.json", "--config", "scale=smoke")
+    text = shared.stdout + shared.stderr
+    for rule in ("train_interpolator", "control_figure"):
+        blocks = [b for b in text.split("\nrule ")[1:] if b.startswith(rule + ":")]
+        assert blocks and all("subjects/me/" not in b.split("output:")[0] for b in blocks), rule
 
 
 def test_status_says_what_would_run_and_why(tmp_path, monkeypatch, capsys):

@@ -129,11 +129,11 @@ rule fit_rgbd:
 
 
 rule train_interpolator:
-    """The XVFI-style frame interpolator, trained once on every subject's video (interp.strides) and the motion
+    """The XVFI-style frame interpolator, trained once on the shared subjects' videos (interp.strides) and the motion
     videos (whole), then used for each subject; the frames the interpolation experiment holds out are never among
     its training frames."""
     input:
-        meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.videos],
+        meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.shared_videos],
         motion=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.motion_videos],
     output:
         model=f"{RESULTS}/interp/model.pt",

@@ -178,8 +178,8 @@ rule control_figure:
     workflow/config.yaml)."""
     input:
         models=lambda wc: [f"{RESULTS}/pretrain/{m}/model.pt" for m in PLAN.control_figures[wc.figure]["models"]],
-        fits=[f"{PLAN.subject_dir(s)}/fit_rgb.npz" for s in PLAN.videos],
-        masks=[f"{PLAN.subject_dir(s)}/masks.npz" for s in PLAN.videos],
+        fits=[f"{PLAN.subject_dir(s)}/fit_rgb.npz" for s in PLAN.shared_videos],
+        masks=[f"{PLAN.subject_dir(s)}/masks.npz" for s in PLAN.shared_videos],
     output:
         report=f"{RESULTS}/pretrain/controls/{{figure}}.json",
         grid=report(f"{RESULTS}/pretrain/controls/{{figure}}.png", caption="../report/pretrain.rst",

@@ -121,7 +121,11 @@ class Plan:
             check_input_names(name, self.subject_inputs(name))
         self.synthetic = [n for n, s in self.subjects.items() if s["source"] == "synthetic"]
         self.image_sets = [n for n, s in self.all_subjects.items() if s["source"] in ("portraits", "images")]
-        self.videos = [n for n in self.subjects if n not in self.image_sets]  # what the interpolator learns from
+        self.videos = [n for n in self.subjects if n not in self.image_sets]
+        # the video subjects the shared steps (the frame interpolator, the control figures) read: `shared_subjects`
+        # (null: every video subject), so a subject added later does not retrain or redraw them
+        shared = config.get("shared_subjects")
+        self.shared_videos = self.videos if shared is None else [n for n in self.videos if n in shared]
         self.alphas, self.betas, self.renderers = config["alphas"], config["betas"], config["renderers"]
         self.pretrained = self.alphas + [f"{b}_from_{a}" for b in self.betas for a in self.alphas]
         self.final_recipe = config["final_recipe"]
