@@ -75,3 +75,29 @@ def test_status_names_the_changed_settings_instead_of_two_configs():
     same_code = block.replace("'f27a0e66abee6610',", "").replace("'9fea103b66751803',", "")
     assert changed_settings(same_code)[0] == "fit_rgb.chunk (gone)"
     assert changed_settings("x:\n    reason: Missing output files: a\n") == []
+
+
+def test_each_scale_setting_is_written_once():
+    """conf/scale/tiny.yaml holds every scale key (its value at tiny and its doc); smoke.yaml and paper.yaml inherit
+    it (defaults: [tiny]) and write a key only where their value differs; a key no scale changes is no scale
+    setting (its value belongs in its section of conf/), and every scale key is read somewhere in conf/."""
+    import yaml
+
+    conf = CONF_DIR
+    repo = CONF_DIR.parent
+    files = {name: yaml.safe_load((conf / "scale" / f"{name}.yaml").read_text()) for name in ("tiny", "smoke", "paper")}
+    tiny = files["tiny"]
+    for name in ("smoke", "paper"):
+        assert files[name]["defaults"] == ["tiny", "_self_"], name
+        repeated = [k for k, v in files[name].items() if k not in ("defaults", "name") and v == tiny.get(k)]
+        assert not repeated, f"conf/scale/{name}.yaml repeats tiny's value of {repeated}"
+        assert set(files[name]) - {"defaults"} <= set(tiny), f"{name}: keys tiny does not define"
+    unchanged = [k for k in tiny if k != "name" and all(k not in files[n] for n in ("smoke", "paper"))]
+    assert not unchanged, f"the same at every scale, so not scale settings: {unchanged}"
+    text = "".join(p.read_text() for p in conf.rglob("*.yaml") if p.parent.name != "scale")
+    code = "".join(p.read_text() for p in [*(repo / "src").rglob("*.py"), *(repo / "workflow").rglob("*.smk")]).lower()
+    unread = [k for k in tiny if f"scale.{k}" not in text and f"scale.{k}" not in code and f'"{k}"' not in code
+              and k != "name"]
+    assert not unread, f"scale keys nothing reads: {unread}"
+    for name in ("smoke", "tiny", "paper"):
+        assert compose_config([f"scale={name}"]).scale.name == name
