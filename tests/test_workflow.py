@@ -335,6 +335,13 @@ def test_results_card(smoke_run, workdir, tmp_path):
     page = report.read_text()
     psnr = rounded(float(finals[0]["psnr"]), float(finals[0]["psnr_ci95"]))
     assert "Results card" in page and f"<td>{finals[0]['subject']}</td>" in page and psnr in page
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium:  # as a person opens it: the rendered landing page shows the headline numbers
+        dom = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=25000",
+                              "--window-size=1400,1000", "--dump-dom", report.as_uri()], capture_output=True,
+                             text=True, timeout=180).stdout
+        row = f"<td>{finals[0]['subject']}</td><td>2</td>"
+        assert "Results card</h2>" in dom and row in dom and f"<td>{psnr} ± " in dom.split(row, 1)[1][:200], dom[:500]
 
 
 @pytest.mark.slow
