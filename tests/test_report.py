@@ -165,3 +165,25 @@ def test_figure_rows_and_columns_are_labelled_and_readable():
     assert image.shape == (28 + 3 * cell, 150 + 4 * cell, 3)
     assert (image[28 + cell // 2, 150 + 10] == 40).all() and (image[28 + cell + 5, 150 + 10] == 120).all() and (image[28 + 2 * cell + 5, 150 + 3 * cell + 5] == 200).all()
     assert (image[28:, :150] < 128).any() and (image[:28, 150:] < 128).any(), "row and column labels are drawn"
+
+
+def test_the_time_vs_quality_figure_marks_where_the_avatar_gets_sharper_than_a_copied_frame(tmp_path):
+    """Figures 57-58 with a third panel: ST-LPIPS of the snapshots against time, the nearest training frame's as a
+    line, and the first snapshot below it."""
+    from PIL import Image
+
+    from avatarlab.evaluate.figures import first_below, quality_figures
+
+    curve = [{"step": 100 * k, "seconds": 10.0 * k, "psnr": 20 + k, "ssim": 0.8, "st_lpips": 0.4 - 0.05 * k}
+             for k in range(1, 6)]
+    assert first_below(curve, "st_lpips", 0.22)["seconds"] == 40.0
+    assert first_below(curve, "st_lpips", 0.1) is None and first_below([{"st_lpips": None}], "st_lpips", 1.0) is None
+    scores = {"psnr": 24.0, "ssim": 0.8, "st_lpips": 0.15}
+    baselines = {"nearest": {"psnr": 22.0, "ssim": 0.7, "st_lpips": 0.22},
+                 "mean_frame": {"psnr": 21.0, "ssim": 0.75, "st_lpips": 0.3}}
+    avatar = {"subject": "s", "recipe": "final", "init": "beta6_from_alpha2", "variant": "a", "seed": 0,
+              "eval": {"curve": curve, "all": {"model": scores, "baselines": baselines},
+                       "render_seconds_per_frame": 0.1}}
+    written = quality_figures([avatar], "beta6_from_alpha2", tmp_path)
+    figure = Image.open(tmp_path / "time_vs_quality.png")
+    assert tmp_path / "time_vs_quality.png" in written and figure.size[0] > 2.5 * figure.size[1]  # three panels

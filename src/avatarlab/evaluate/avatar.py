@@ -52,10 +52,10 @@ def baseline_predictions(train: RealImageSet, test: RealImageSet) -> dict[str, t
 
 
 def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealImageSet, target: torch.Tensor,
-                  device) -> list[dict]:
-    """Test PSNR/SSIM of the weights kept part-way through fine-tuning (snapshots/) and of the final model, against
-    the fine-tuning time at which they were kept: the quality-vs-time curve (seed 002, figures 57-58), in step
-    order; the avatar's own point says `model: true`."""
+                  device, st_lpips=None) -> list[dict]:
+    """Test PSNR/SSIM (and ST-LPIPS, when its network is given) of the weights kept part-way through fine-tuning
+    (snapshots/) and of the final model, against the fine-tuning time at which they were kept: the
+    quality-vs-time curve (seed 002, figures 57-58), in step order; the avatar's own point says `model: true`."""
     points = []
     for path in sorted((model_path.parent / "snapshots").glob("step_*.pt")):
         net, content = load_model_file(path, device)
@@ -63,9 +63,10 @@ def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealI
             continue
         pred = composite(render_frames(net, test), test.masks)
         points.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": psnr(pred, target),
-                       "ssim": ssim(pred, target)})
+                       "ssim": ssim(pred, target), "st_lpips": st_lpips(pred, target) if st_lpips else None})
     points.append({"step": int(final["step"]), "seconds": final.get("seconds"), "psnr": final_scores["psnr"],
-                   "ssim": final_scores["ssim"], "model": True})  # the avatar (with a validation split: its stop)
+                   "ssim": final_scores["ssim"], "st_lpips": final_scores.get("st_lpips"),
+                   "model": True})  # the avatar (with a validation split: its stop)
     return sorted(points, key=lambda point: point["step"])
 
 
@@ -110,7 +111,8 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
                                                                   identity=False)["face_detection_rate"]
     for part in ("all", "mouth_open"):
         report[part]["gain"] = gains(report[part]["model"], report[part]["baselines"])
-    report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device)
+    report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device,
+                                    perceptual["st_lpips"])
     best = report["all"]["gain"]["psnr"]["best_baseline"]
     show = np.linspace(0, len(test) - 1, min(6, len(test))).round().astype(int)
     grid = torch.cat([torch.cat(list(row[show]), 2) for row in (target, predictions["model"], predictions[best])], 1)

@@ -20,6 +20,12 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+def first_below(curve: list[dict], metric: str, level: float) -> dict | None:
+    """The first point of a quality-vs-time curve whose `metric` is below `level` (e.g. where the avatar's ST-LPIPS
+    drops below the nearest training frame's), None if it never does."""
+    return next((pt for pt in curve if pt.get(metric) is not None and pt[metric] < level), None)
+
+
 def quality_figures(avatars: list[dict], final: str, folder: Path) -> list[Path]:
     """Figures 57-58 for this run: test quality against fine-tuning time (a curve per avatar, from the weights kept
     part-way) and against render time per frame, each subject's best trivial baseline drawn as a dashed line."""
@@ -32,24 +38,36 @@ def quality_figures(avatars: list[dict], final: str, folder: Path) -> list[Path]
               and a["seed"] == 0]
     colours = {s: f"C{i}" for i, s in enumerate(sorted({a["subject"] for a in avatars}))}
     written = []
-    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.8))
+    fig, axes = plt.subplots(1, 3, figsize=(13.5, 3.8))
+    panels = (("psnr", "test PSNR (dB)", max), ("ssim", "test SSIM", max), ("st_lpips", "test ST-LPIPS (lower is better)",
+                                                                             min))
     for a in finals:
         curve = [pt for pt in a["eval"].get("curve", []) if pt.get("seconds") is not None]
         base = a["eval"]["all"]["baselines"]
-        for ax, metric in zip(axes, ("psnr", "ssim")):
-            if curve:
-                ax.plot([pt["seconds"] for pt in curve], [pt[metric] for pt in curve], "o-", ms=3,
-                        color=colours[a["subject"]], label=f"{a['subject']} (final recipe)")
-            best = max(base.values(), key=lambda b: b[metric])[metric]
-            ax.axhline(best, ls="--", lw=1, color=colours[a["subject"]], alpha=0.7)
-    for ax, label in zip(axes, ("test PSNR (dB)", "test SSIM")):
+        colour = colours[a["subject"]]
+        for ax, (metric, _, pick) in zip(axes, panels):
+            points = [pt for pt in curve if pt.get(metric) is not None]
+            if points:
+                ax.plot([pt["seconds"] for pt in points], [pt[metric] for pt in points], "o-", ms=3, color=colour,
+                        label=f"{a['subject']} (final recipe)")
+            scored = [b[metric] for b in base.values() if b.get(metric) is not None]
+            if scored:
+                ax.axhline(pick(scored), ls="--", lw=1, color=colour, alpha=0.7)
+            nearest = (base.get("nearest") or {}).get(metric)
+            if metric == "st_lpips" and nearest is not None:  # where the avatar gets sharper than a copied frame
+                ax.axhline(nearest, ls=":", lw=1, color=colour, alpha=0.9)
+                cross = first_below(points, metric, nearest)
+                if cross is not None:
+                    ax.annotate(f"below nearest frame at {cross['seconds']:.0f} s", (cross["seconds"], cross[metric]),
+                                fontsize=6, color=colour, xytext=(4, -10), textcoords="offset points")
+    for ax, (_, label, _) in zip(axes, panels):
         ax.set_xlabel("fine-tuning time on this CPU (s)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     if axes[0].get_legend_handles_labels()[0]:
         axes[0].legend(fontsize=7)
-    fig.suptitle("quality vs creation time (dashed: each subject's best trivial baseline on the same frames)",
-                 fontsize=9)
+    fig.suptitle("quality vs creation time (dashed: each subject's best trivial baseline on the same frames; dotted: "
+                 "its nearest training frame's ST-LPIPS)", fontsize=9)
     fig.tight_layout()
     written.append(save_figure(fig, folder / "time_vs_quality.png"))
     fig, ax = plt.subplots(figsize=(5.2, 3.8))
