@@ -58,9 +58,10 @@ def test_dry_run_lists_the_jobs(tmp_path):
     planned = jobs_planned(snakemake(tmp_path, "-n"))
     assert planned["pretrain_alpha"] == 2 and planned["pretrain_beta"] == 12 and planned["evaluate_pretrained"] == 16
     # the default obama subject's clips are a path relative to the work directory: absent here, left out
-    assert planned["finetune_avatar"] == 14 + 2 + 1 and planned["finetune_interp_variant"] == 4
-    # seed 1 of the final recipe (two synthetic subjects) and of the alpha1 / alpha2 avatars of synth_talk
-    assert planned["finetune_avatar_seed"] == 2 + 2 and planned["evaluate_avatar"] == 17 + 4 + 4
+    # one rule makes every avatar: 14 base + 2 final + 1 (variant a) ... + seed 1 of the final recipe (two synthetic
+    # subjects) and of the alpha1 / alpha2 avatars of synth_talk + the interpolation variants b and c of both
+    assert planned["finetune_avatar"] == (14 + 2 + 1) + (2 + 2) + 4 and planned["evaluate_avatar"] == 17 + 4 + 4
+    assert "finetune_avatar_seed" not in planned and "finetune_interp_variant" not in planned
 
 
 def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):
