@@ -149,3 +149,17 @@ def test_two_workflows_starting_at_once_both_get_the_dashboard_view(store, monke
     set_dashboard_view(experiment, results)
     view = json.loads(client(results).get_experiment(experiment).tags[key])
     assert view["selectedColumns"] == VIEW_COLUMNS
+
+
+def test_evaluation_metrics_reach_the_dashboard_rounded(store):
+    """What the dashboard shows: 4 decimals (eval.json keeps every digit); the gain and the baselines too."""
+    from avatarlab.tracking import log_to_run, start_run
+
+    results, cfg = store
+    with start_run(cfg, "finetune", "s/alpha1") as run:
+        run_id = run.info.run_id
+    gains = {"psnr": {"gain": 1.234567891, "best_baseline": "nearest", "beats": True}}
+    log_to_run(cfg, run_id, {"psnr": 24.123456789, "ssim": 0.85312345}, {"nearest": {"psnr": 22.88888888}}, gains)
+    metrics = client(results).get_run(run_id).data.metrics
+    assert metrics["test_psnr"] == 24.1235 and metrics["test_ssim"] == 0.8531
+    assert metrics["test_gain_psnr"] == 1.2346 and metrics["test_baseline_nearest_psnr"] == 22.8889
