@@ -51,6 +51,23 @@ def test_the_readme_is_a_front_door_that_links_every_doc():
     assert not re.findall(r"\b[0-9a-f]{7,40}\b", readme.replace("bcd0053", "")), "no commit history in the README"
 
 
+def test_the_readmes_results_are_copied_from_the_card_they_name():
+    """Every number between `<!-- card: docs/results/X.md -->` and `<!-- /card -->` in the README stands, as written,
+    in that committed results card (evaluate/results_card.numbers_not_in); without such a block the README says that
+    no card is committed."""
+    from avatarlab.evaluate.results_card import numbers_not_in
+
+    readme = (REPO / "README.md").read_text()
+    blocks = re.findall(r"<!-- card: (\S+) -->(.*?)<!-- /card -->", readme, re.S)
+    if not blocks:
+        assert "No such card is committed yet" in readme
+        return
+    for path, text in blocks:
+        card = (REPO / path).read_text()
+        assert card.startswith("# Results card"), path
+        assert numbers_not_in(text.replace(path, ""), card) == [], path
+
+
 def redraw() -> None:
     text = current_rulegraph()
     labels = dict(re.findall(r'^\s*(\d+)\[label = "([^"]+)"', text, re.M))
