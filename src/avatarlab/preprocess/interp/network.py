@@ -7,22 +7,20 @@ residual refinement. Sizes are small so it trains on a CPU.
 
 `keep_unwarped` (an option, off by default; not XVFI's): the synthesis may also keep a learned per-pixel share of the
 unwarped cross-fade. Where the flows are nearly zero the cross-fade is almost exact, while a warp by small, noisy flows
-resamples (blurs) the frame: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade
-(docs/experiment-log.md, 2026-12-05). The share is `10 * keep * sigmoid(logit)`, `keep` a scalar that starts at
-zero, so the untrained network is still exactly the warp of its starting flows. Over seeds 0-2 it moved the held-out
-PSNR by +0.23 dB (synth_talk), -0.17 (synth_turns) and +0.03 (obama), within the seeds' spread, so it stays off.
+resamples (blurs) the frame: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade.
+The share is `10 * keep * sigmoid(logit)`, `keep` a scalar that starts at
+zero, so the untrained network is still exactly the warp of its starting flows. Over three seeds it moved the
+held-out PSNR within the seeds' spread, so it stays off.
 
 `still_flow_px` (not XVFI's): at inference, a pixel whose flow to the intermediate frame is shorter than this many
 pixels is not warped (its flow set to zero, so the synthesis sees that frame's own pixel). A warp by a flow of a
 fraction of a pixel resamples the frame bilinearly, which blurs it, while on a nearly still head such flows are
 mostly the estimate's noise: on synth_talk's stillest held-out frames Farneback lost 1.0 dB to the cross-fade. The
 pretraining step chooses it among `interp.still_flow_candidates` on its validation triplets, and it is saved with the
-network. The default candidates are [0] (every pixel warped, as XVFI): with [0, 0.25, 0.5, 1] the validation chose
-0.5 px in seeds 0-2, which lifted the synthetic subjects by 0.04-0.12 dB but cost obama (real footage, where small
-flows are partly real motion) 0.06-0.08 dB (docs/experiment-log.md, 2026-12-05 late). So the interpolation step
+network. The default candidates are [0] (every pixel warped, as XVFI): one length for every video lifts the
+synthetic subjects and costs real footage, where small flows are partly real motion. So the interpolation step
 (`interp/run.py`) chooses the length again for each subject, on that subject's own kept frames
-(`interp.subject_still_flow_candidates`, [0, 0.25, 0.5, 1] by default): over seeds 0-2 it chose 1 px for synth_talk,
-0.5 px for synth_turns and 0 for obama in every seed (2026-12-06).
+(`interp.subject_still_flow_candidates`, [0, 0.25, 0.5, 1] by default).
 
 Where the flows start (`flow_init`): XVFI learns them from nothing, over days on a 4K video set; `zero` does the same
 here. `farneback` (the default; a declared substitution) starts every scale from OpenCV's Farneback flows of the two

@@ -9,10 +9,9 @@ comparison PNG.
 
 Before it interpolates, the step chooses the network's still-flow length (`still_flow_px`: flows shorter than it are
 not warped) for this subject among `interp.subject_still_flow_candidates`, on the subject's own triplets of kept
-frames (the frames variant (b) keeps, neighbours 4 apart: never a held-out frame). One length for every video had
-been a trade: 0.5 px lifted the synthetic subjects, whose small flows are noise on a still head, and cost obama,
-whose small flows are partly a real drift (docs/experiment-log.md, 2026-12-05 late); chosen per subject, each keeps
-its gain (2026-12-06).
+frames (the frames variant (b) keeps, neighbours 4 apart: never a held-out frame). One length for every video is a
+trade: 0.5 px lifts the synthetic subjects, whose small flows are noise on a still head, and costs real footage,
+whose small flows are partly a real drift; chosen per subject, each keeps its gain.
 """
 from __future__ import annotations
 

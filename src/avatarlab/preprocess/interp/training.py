@@ -110,7 +110,7 @@ def train(frames: torch.Tensor, triplets: np.ndarray, cfg, checkpoint: Path,
           validation_groups: np.ndarray | None = None) -> tuple[XVFILite, list[float], dict]:
     """Trains on `device` (frames stay where they are; each batch moves), with mixed precision if `cfg.amp`.
     The loss is `interp.loss`: the mean absolute error (l1, XVFI's) or the mean squared error (l2, what PSNR
-    scores; it hedged towards blur over seeds 0-2, docs/experiment-log.md 2026-12-06, so l1 is the default).
+    scores; it hedged towards blur over three seeds, so l1 is the default).
     With `validation` triplets (and their videos, `validation_groups`), scores the network on them before training
     and at every checkpoint, and returns the best-scoring snapshot (before training it is its starting point: the
     Farneback flows' blend), so training can only improve on where it started as far as frames it never trained to
