@@ -82,3 +82,11 @@ def redraw() -> None:
 
 if __name__ == "__main__":
     redraw()
+
+
+def test_no_run_history_in_the_code():
+    """Dates and experiment-log citations belong in docs/experiment-log.md, not in docstrings and comments."""
+    hits = [f"{p.relative_to(REPO)}:{n}" for p in (REPO / "src").rglob("*.py")
+            for n, line in enumerate(p.read_text().splitlines(), 1)
+            if re.search(r"\b20\d\d-\d\d-\d\d\b|experiment-log", line)]
+    assert not hits, hits
