@@ -361,7 +361,7 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
     assert report["train_indices"] == list(range(6)) and report["validation_indices"] == [6, 7]
     assert report["test_indices"] == [8, 9] and scored == [torch.Size([2, 3, 64, 64])] * 4
     assert [c["step"] for c in report["validation_scores"]] == [start + 1, start + 2, start + 3, start + 4]
-    assert report["chosen_step"] == start + 1 and report["iterations"] == 4
+    assert report["chosen_step"] == start + 1 and report["iterations"] == 4 and report["validation_psnr"] == 30.0
     model, content = load_model_file(out / "model.pt")
     first, _ = load_model_file(out / "snapshots" / f"step_{start + 1:07d}.pt")
     end, _ = load_model_file(out / "snapshots" / f"step_{start + 4:07d}.pt")

@@ -170,3 +170,9 @@ def test_a_sweep_chooses_on_validation_and_the_test_only_scores(tmp_path):
     assert chosen[0]["validation_psnr"] == pytest.approx(25.005)
     assert chosen[0]["differs_from_best"] != "best"  # the test's best is the other one: a score, not the choice
     assert "best mean validation PSNR" in table.note and "| chosen |" in table.markdown()
+    from avatarlab.evaluate.sweep_report import validation_score
+
+    point = folder / sweep.points[0].name  # a train.json with the scores only: the chosen step's
+    (point / "train.json").write_text(json.dumps({"chosen_step": 300, "validation_scores": [
+        {"step": 300, "psnr": 22.4}, {"step": 600, "psnr": 22.1}]}))
+    assert validation_score(point) == 22.4

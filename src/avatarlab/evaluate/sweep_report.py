@@ -46,7 +46,11 @@ def validation_score(folder: Path) -> float | None:
     path = folder / "train.json"
     if not path.is_file():
         return None
-    return json.loads(path.read_text()).get("validation_psnr")
+    report = json.loads(path.read_text())
+    if report.get("validation_psnr") is not None:
+        return report["validation_psnr"]
+    chosen = [s["psnr"] for s in report.get("validation_scores") or [] if s.get("step") == report.get("chosen_step")]
+    return chosen[0] if chosen else None
 
 
 def mark_chosen(rows: list[dict]) -> str | None:

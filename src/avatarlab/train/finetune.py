@@ -145,7 +145,7 @@ def finetune_avatar(cfg, device):
                   "split": split.protocol, "train_frames": len(split.train), "train_indices": split.train.tolist(),
                   "test_indices": split.test.tolist(), "iterations": result.step - recipe.start,
                   "validation_indices": split.validation.tolist(), "chosen_step": stop["step"],
-                  "validation_scores": stop.get("scores", []),
+                  "validation_psnr": stop.get("psnr"), "validation_scores": stop.get("scores", []),
                   "train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
                   "synthetic_samples": "none" if synthetic is None else ("mouth interior" if mouth else "plain head"),
                   "history": result.history, "run_id": run_id}
