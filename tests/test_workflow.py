@@ -432,7 +432,8 @@ def test_edits_rerun_exactly_what_depends_on_them(smoke_run, workdir, tmp_path):
     losses = copy / "src/avatarlab/model/losses.py"
     losses.write_text(losses.read_text().replace("background: float = 0.5", "background: float = 0.45"))
     planned = dry()
-    assert planned["pretrain_alpha"] == 2 and planned["finetune_avatar"] == 17 and "fit_rgb" not in planned
+    # every avatar (one rule: 17 seed-0 avatars, 4 more seeds, 4 interpolation variants), no preprocessing
+    assert planned["pretrain_alpha"] == 2 and planned["finetune_avatar"] == 25 and "fit_rgb" not in planned
 
 
 @pytest.mark.slow
