@@ -71,9 +71,11 @@ def changed_settings(block: str) -> list[str]:
 
     import yaml
 
+    if "Params have changed" not in block:
+        return []
     found = re.search(r"before: (.*?) now: (.*?)\s*$", block.split("reason: ", 1)[-1].split("\n    wildcards:")[0],
                       re.S)
-    if "Params have changed" not in block or found is None:
+    if found is None:
         return []
 
     def params(text: str) -> list:

@@ -105,7 +105,7 @@ def alpha_paired_table(avatars: list[dict]) -> Table:
                   "seed-to-seed noise?", ["subject", "subset", "metric", "seeds", "difference", "ci95", "verdict"],
                   "difference = mean over seeds of (alpha2 - alpha1) with the same seed; the verdict says whether its "
                   "95 % confidence interval (Student's t) excludes zero. Higher is better for PSNR and SSIM, lower "
-                  "for ST-LPIPS.")
+                  "for ST-LPIPS.", ci_columns={"difference": "ci95"})
     for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
         one, two = (seeded_runs(avatars, subject, "base", i) for i in ("alpha1", "alpha2"))
         if not one or not two:

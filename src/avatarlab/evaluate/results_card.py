@@ -81,7 +81,7 @@ def duration(seconds: float) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{seconds / 60:.1f} min"
 
 
-def provenance(start_file: Path | None, log: Path | None, now: datetime) -> list[str]:
+def provenance(start_file: Path | None, log: Path | None, now: datetime) -> list[tuple[str, str]]:
     import snakemake
     import torch
 
@@ -102,7 +102,7 @@ def provenance(start_file: Path | None, log: Path | None, now: datetime) -> list
                          f"({torch.get_num_threads()} threads in this process; each step sets its own), "
                          f"Snakemake {snakemake.__version__}, {platform.system()} {platform.release()}"),
             ("workflow log", str(log) if log else "none found")]
-    return ["| | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows]
+    return rows
 
 
 def cut(table: Table, columns: list[str], title: str | None = None, note: str | None = None) -> Table:
@@ -157,14 +157,12 @@ LANDING_STYLE = ("<style>.avatarlab table{border-collapse:collapse;margin:.4em 0
                  ".avatarlab p.more{font-size:12px;color:#555;max-width:70em}</style>")
 
 
-def landing_html(provenance_rows: list[str], tables: list[Table]) -> str:
+def landing_html(provenance_rows: list[tuple[str, str]], tables: list[Table]) -> str:
     """The HTML report's landing (workflow/report/workflow.rst includes it): the provenance and the headline tables,
     rendered (not a download)."""
     import html
 
-    rows = [line.strip("|").split(" | ", 1) for line in provenance_rows[2:]]
-    facts = "".join(f"<tr><th>{html.escape(k.strip())}</th><td>{html.escape(v.strip(' |'))}</td></tr>"
-                    for k, v in rows)
+    facts = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in provenance_rows)
     return (LANDING_STYLE + '<div class="avatarlab"><h2>Results card</h2><p>Every number below was written by this '
             "run; each stands beside its best trivial baseline on the same frames and its 95 % CI. The full "
             "tables are in the categories below and in <code>report/tables/</code>.</p>"
@@ -179,7 +177,9 @@ def write_card(results: Path, final: str, scale: str, start_file: Path | None, l
     lines = [f"# Results card: scale `{scale}`", "",
              "Every number below was written by this one run of `make main`; each stands beside its best trivial "
              "baseline on the same frames and its 95 % CI. The full tables: `report/tables/`.", "",
-             "## Provenance", ""] + (facts := provenance(start_file, log, now))
+             "## Provenance", "", "| | |", "| --- | --- |"]
+    facts = provenance(start_file, log, now)
+    lines += [f"| {k} | {v} |" for k, v in facts]
     if log is not None:
         try:
             lines += ["", "## Step times", "", step_times.table(step_times.parse_log(log), os.cpu_count() or 1)]

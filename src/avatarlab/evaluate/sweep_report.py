@@ -14,7 +14,7 @@ from pathlib import Path
 
 from avatarlab.evaluate.figures import save_figure
 from avatarlab.evaluate.scoring import LOWER_IS_BETTER
-from avatarlab.evaluate.table import Table
+from avatarlab.evaluate.table import MAX_SHOWN, Table
 from avatarlab.io import atomic_path
 from avatarlab.seed_stats import mean_ci, pooled_sd, single_run_threshold
 from avatarlab.workflow.sweeps import SEED_KEY, Sweep, load_sweep
@@ -53,7 +53,7 @@ def validation_score(folder: Path) -> float | None:
     return chosen[0] if chosen else None
 
 
-def mark_chosen(rows: list[dict]) -> str | None:
+def mark_chosen(rows: list[dict]) -> str:
     """Marks the setting with the best mean validation PSNR `chosen` (the choice; the test columns only score it);
     without validation scores for every setting nothing is chosen. -> the note's sentence about it."""
     for r in rows:
@@ -111,7 +111,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
         note += f" Beside it, each setting's mean and 95 % CI over seeds of: {', '.join(sweep.also)}."
     shown = swept + ["seeds", "validation_psnr", "chosen", sweep.metric, "gain", "differs_from_best"]
     table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note,
-                  shown=shown + list(sweep.also)[:max(0, 8 - len(shown))])
+                  shown=shown + list(sweep.also)[:max(0, MAX_SHOWN - len(shown))])
     for r in sorted(rows, key=lambda r: tuple(str(r[k]) for k in swept)):
         table.add(**{k: (str(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()})
     return table, rows

@@ -58,7 +58,7 @@ def rounded(value, ci=None) -> str:
 def noise_of(row: dict, column: str, named: dict | None = None):
     """The 95 % CI half-width that goes with a column (`<column>_ci95`, or the column `named` maps it to), if the row
     has one."""
-    for key in ((named or {}).get(column), f"{column}_ci95", "ci95" if column == "difference" else None):
+    for key in ((named or {}).get(column), f"{column}_ci95"):
         if key and isinstance(row.get(key), (int, float)):
             return row[key]
     return None
@@ -161,17 +161,21 @@ class Table:
             value, ci = row.get(c), noise_of(row, c, self.ci_columns)
             text = rounded(value, ci)
             ci_column = self.ci_columns.get(c, f"{c}_ci95")
-            if ci is not None and isinstance(value, float) and ci_column not in columns and c != "difference":
+            if ci is not None and isinstance(value, float) and ci_column not in columns:
                 text += f" ± {rounded(ci, ci)}"
             out.append(text)
         return out
 
-    def markdown(self) -> str:
+    def layout(self) -> tuple[list[str], list[str], dict | None, str]:
+        """What both renderings show: (columns shown, columns in the CSV only, the best row, the sentence)."""
         shown, rest = self.visible()
-        best = self.best_row()
+        return shown, rest, self.best_row(), self.sentence()
+
+    def markdown(self) -> str:
+        shown, rest, best, sentence = self.layout()
         lines = [f"### {self.title}", ""]
-        if self.sentence():
-            lines += [f"**{self.sentence()}**", ""]
+        if sentence:
+            lines += [f"**{sentence}**", ""]
         if self.note:
             lines += [self.note, ""]
         lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
@@ -188,12 +192,11 @@ class Table:
 
     def html(self) -> str:
         """The same as `markdown`, as an HTML fragment (the Snakemake report's landing page)."""
-        shown, rest = self.visible()
-        best = self.best_row()
+        shown, rest, best, sentence = self.layout()
         esc = html.escape
         parts = [f"<h3>{esc(self.title)}</h3>"]
-        if self.sentence():
-            parts.append(f'<p class="headline"><b>{esc(self.sentence())}</b></p>')
+        if sentence:
+            parts.append(f'<p class="headline"><b>{esc(sentence)}</b></p>')
         if self.note:
             parts.append(f'<p class="note">{esc(self.note)}</p>')
         parts.append("<table><thead><tr>" + "".join(f"<th>{esc(c)}</th>" for c in shown) + "</tr></thead><tbody>")

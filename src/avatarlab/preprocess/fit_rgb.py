@@ -266,11 +266,10 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     log.info("keyframes %s (yaw %s deg) fitted in %.1fs, loss %.4f -> %.4f", key.tolist(),
              np.round(yaw[key_local]).astype(int).tolist(), time.perf_counter() - start, hist_key[0], hist_key[-1])
     keys = set(key.tolist())
-    seen = [i for i, ok in zip(idx.tolist(), allowed) if ok and i not in keys]
-    unseen = [i for i, ok in zip(idx.tolist(), allowed) if not ok]
+    rest = [i for i, ok in zip(idx.tolist(), allowed) if ok and i not in keys]  # fitted first, then the held-out
+    held = [i for i, ok in zip(idx.tolist(), allowed) if not ok]
     chunk = int(fit.chunk)
-    batches = [seen[c:c + chunk] for c in range(0, len(seen), chunk)] + \
-        [unseen[c:c + chunk] for c in range(0, len(unseen), chunk)]
+    batches = [group[c:c + chunk] for group in (rest, held) for c in range(0, len(group), chunk)]
     rvec_of = dict(zip(idx.tolist(), rvecs))
     tvec_of = dict(zip(idx.tolist(), tvecs))
     hist_rest = []

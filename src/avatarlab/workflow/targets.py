@@ -199,11 +199,11 @@ class Plan:
 
     # --- results --------------------------------------------------------------------------------------------------
     def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
-        return f"{self.results}/avatars/{subject}/{recipe}/{init}"
+        return AvatarKey(subject, recipe, init).path(self.results)
 
-    def seeded(self, init: str) -> list[str]:
-        """The folder names of an avatar's seeded repeats: <init> (seed 0), <init>_seed1, ..."""
-        return [AvatarKey("-", "-", init, seed=k).folder for k in range(self.seeds)]
+    def seeded(self, subject: str, recipe: str, init: str) -> list[str]:
+        """The eval.json of an avatar's seeded repeats: seed 0 (the plain folder), seed 1, ..."""
+        return [f"{key.path(self.results)}/eval.json" for key in AvatarKey(subject, recipe, init).seeds(self.seeds)]
 
     def final_strategy(self) -> str:
         return self.final_recipe.split("_from_")[0]
@@ -233,14 +233,13 @@ class Plan:
         the interpolation variants (base recipe; variant a is the plain base avatar of the same initialisation)."""
         outputs = []
         for subject in self.subjects:
-            outputs += [f"{self.avatar_dir(subject, 'final', name)}/eval.json" for name in self.seeded(self.final_recipe)]
+            outputs += self.seeded(subject, "final", self.final_recipe)
             outputs += [f"{self.avatar_dir(subject, 'final', tier.name)}/eval.json" for tier in self.tiers]
             outputs += [f"{self.results}/apps/{subject}/novel_views.png",
                         f"{self.results}/apps/{subject}/telepresence.json"]
         for subject in self.ablation_subjects:
             outputs += [f"{self.avatar_dir(subject, 'base', init)}/eval.json" for init in self.pretrained]
-            outputs += [f"{self.avatar_dir(subject, 'base', name)}/eval.json" for init in self.alphas
-                        for name in self.seeded(init)]
+            outputs += [path for init in self.alphas for path in self.seeded(subject, "base", init)]
         for subject in self.interp_subjects:
             outputs += [f"{AvatarKey(subject, 'base', self.final_recipe, v).path(self.results)}/eval.json"
                         for v in VARIANTS]
