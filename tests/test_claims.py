@@ -5,6 +5,7 @@ import pytest
 
 from avatarlab.evaluate import claims
 from avatarlab.evaluate.claims import RULE, Evidence, mean_difference_noise, verdict
+from avatarlab.workflow.layout import ResultsTree
 
 
 def avatar(subject, init, psnr, baseline=20.0, mouth=None, variant="a", recipe="base"):
@@ -85,7 +86,7 @@ def test_the_noise_of_a_mean_of_differences():
 
 
 def test_the_claims_table_states_its_rule(tmp_path):
-    table = claims.claims_table(tmp_path, [], "beta6_from_alpha2", "smoke")
+    table = claims.claims_table(ResultsTree(tmp_path), [], "beta6_from_alpha2", "smoke")
     assert RULE in table.note
     assert {r["verdict"] for r in table.rows} == {"not testable: the INSTA videos and the other four methods are not "
                                                   "part of this run"}

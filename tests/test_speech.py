@@ -19,6 +19,7 @@ from avatarlab.speech.visemes import (
     viseme_basis,
     viseme_of,
 )
+from avatarlab.workflow.layout import ResultsTree
 
 needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None,
                                   reason="Debian's espeak-ng is not installed (`make test` installs it where it can)")
@@ -481,7 +482,7 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     from avatarlab.io import write_json
 
     write_json(tmp_path / "results" / "speech" / "real_eval.json", report)
-    real_rows = [r for r in speech_table(tmp_path / "results", "smoke").rows if "real" in str(r.get("data"))]
+    real_rows = [r for r in speech_table(ResultsTree(tmp_path / "results"), "smoke").rows if "real" in str(r.get("data"))]
     assert len(real_rows) == 6 and "trained on the synthetic corpus" in real_rows[0]["method"]
     first = speakers["grid"]["synthetic"]
     assert real_rows[0]["data"] == "2 real grid clips" and real_rows[0]["baseline_iod"] == first["still_mouth_percent"]
@@ -493,6 +494,6 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
                                                  f"{tuned['beats_still_mouth']} beyond the CI")
     from avatarlab.evaluate.report import speech_timing_table
 
-    timing_rows = speech_timing_table(tmp_path / "results").rows
+    timing_rows = speech_timing_table(ResultsTree(tmp_path / "results")).rows
     assert len(timing_rows) == 6 and timing_rows[0]["opening_r"] == first["opening_timing"]["model_r"]
     assert timing_rows[0]["verdict"] in {"better", "worse", "within the clips' spread"}

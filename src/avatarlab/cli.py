@@ -167,23 +167,25 @@ def add_subject(args) -> int:
     final = plan.avatar_dir(args.name, "final", plan.final_recipe)
     print(f"subject {args.name}: {len(found)} input(s), written to {LOCAL_SUBJECTS}")
     print("its results (`avatarlab run <target>` makes one, `avatarlab run` everything):")
-    for target in (f"{plan.subject_dir(args.name)}/fit_rgb.json", f"{final}/eval.json",
-                   f"{plan.results}/apps/{args.name}/novel_views.png"):
+    for target in (plan.tree.subject(args.name, "fit_rgb.json"), f"{final}/eval.json",
+                   plan.tree.app(args.name, "novel_views.png")):
         print(f"  {target}")
     return 0
 
 
 def report(args) -> int:
+    from avatarlab.workflow.layout import ResultsTree, results_root
+
     scale = scale_of(args.scale)
-    done = snakemake(f"results/{scale}/report/README.md", "--cores", "1", "--logger", "avatarlab", "--config",
+    tree = ResultsTree(results_root(scale))
+    done = snakemake(tree.report("README.md"), "--cores", "1", "--logger", "avatarlab", "--config",
                      f"scale={scale}").returncode
     if done:
         return done
-    subprocess.run([sys.executable, "-m", "avatarlab.evaluate.results_card", "--results", f"results/{scale}"],
-                   cwd=REPO)
-    html = f"results/{scale}/report/workflow_report.html"
+    subprocess.run([sys.executable, "-m", "avatarlab.evaluate.results_card", "--results", tree.root], cwd=REPO)
+    html = tree.report("workflow_report.html")
     snakemake("--report", html, "--config", f"scale={scale}", capture=True)
-    for path in (f"results/{scale}/report/RESULTS.md", f"results/{scale}/report/README.md", html):
+    for path in (tree.report("RESULTS.md"), tree.report("README.md"), html):
         print(f"  {REPO / path}")
     return 0
 

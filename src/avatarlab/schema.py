@@ -367,6 +367,7 @@ class Report:
     out_dir: str
     final_recipe: str
     scale: str
+    planned: Optional[str] = None
 
 
 SECTIONS = {"paths": Paths, "render": Render, "demo": Demo, "dlib_check": DlibCheck, "subject": Subject,

@@ -8,16 +8,16 @@ rule finetune_avatar:
     of avatars is judged against), <init>_frames<b|c> (the interpolation experiment, base recipe: (b) every second
     training frame dropped, (c) (b) + the dropped frames re-created by the frame interpolator)."""
     input:
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
+        masks=TREE.subject("{subject}", "masks.npz"),
         interpolated=lambda wc: interpolated_input(avatar_key(wc)),
-        model=lambda wc: f"{RESULTS}/pretrain/{avatar_key(wc).init}/model.pt",
+        model=lambda wc: TREE.pretrain(avatar_key(wc).init, "model.pt"),
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/model.pt",
-        train=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/train.json",
+        model=TREE.avatar("{subject}", "{recipe}", "{avatar}", "model.pt"),
+        train=TREE.avatar("{subject}", "{recipe}", "{avatar}", "train.json"),
     log:
-        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{avatar}}.log",
+        LOG_TREE.avatar("{subject}", "{recipe}", "{avatar}.log"),
     params:
         **step_params(
             "avatarlab.train.finetune", extra=lambda wc: finetune_choices(avatar_key(wc)),
@@ -25,7 +25,7 @@ rule finetune_avatar:
                                               "finetune.init_model": input.model,
                                               **({"finetune.interpolated": input.interpolated[0]}
                                                  if input.interpolated else {})},
-            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra"),
+            run_dir=lambda wc: TREE.avatar(wc.subject, wc.recipe, wc.avatar, ".hydra")),
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),
@@ -39,18 +39,18 @@ rule evaluate_avatar:
     """An avatar on its test frames beside the mean, last and nearest training frame; its own step, so a new metric
     re-scores without retraining."""
     input:
-        model=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/model.pt",
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        landmarks=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        model=TREE.avatar("{subject}", "{recipe}", "{avatar}", "model.pt"),
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
+        masks=TREE.subject("{subject}", "masks.npz"),
+        landmarks=TREE.subject("{subject}", "landmarks.npz"),
         interpolated=lambda wc: interpolated_input(avatar_key(wc)),
         tracking=TRACKING_READY,
     output:
-        report=f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/eval.json",
-        frames=report(f"{RESULTS}/avatars/{{subject}}/{{recipe}}/{{avatar}}/test_frames.png",
+        report=TREE.avatar("{subject}", "{recipe}", "{avatar}", "eval.json"),
+        frames=report(TREE.avatar("{subject}", "{recipe}", "{avatar}", "test_frames.png"),
                       caption="../report/avatar.rst", category="Avatars", subcategory="{subject}"),
     log:
-        f"{LOGS}/avatars/{{subject}}/{{recipe}}/{{avatar}}_eval.log",
+        LOG_TREE.avatar("{subject}", "{recipe}", "{avatar}_eval.log"),
     params:
         **step_params(
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={wc.recipe}",),
@@ -58,7 +58,7 @@ rule evaluate_avatar:
                 **PLAN.finetune_values(avatar_key(wc), input.model),
                 "seed": avatar_key(wc).seed, "evaluate.model": input.model, "evaluate.out": output.report,
                 **({"finetune.interpolated": input.interpolated[0]} if input.interpolated else {})},
-            run_dir=lambda wc: f"{RESULTS}/avatars/{wc.subject}/{wc.recipe}/{wc.avatar}/.hydra/eval"),
+            run_dir=lambda wc: TREE.avatar(wc.subject, wc.recipe, wc.avatar, ".hydra", "eval")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -71,13 +71,13 @@ rule evaluate_avatar:
 rule novel_views:
     input:
         avatar=lambda wc: PLAN.final_avatar(wc.subject),
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
     output:
-        grid=report(f"{RESULTS}/apps/{{subject}}/novel_views.png", caption="../report/novel_views.rst",
+        grid=report(TREE.app("{subject}", "novel_views.png"), caption="../report/novel_views.rst",
                     category="Applications", subcategory="{subject}"),
-        meta=f"{RESULTS}/apps/{{subject}}/novel_views.json",
+        meta=TREE.app("{subject}", "novel_views.json"),
     log:
-        f"{LOGS}/apps/{{subject}}/novel_views.log",
+        LOG_TREE.app("{subject}", "novel_views.log"),
     params:
         **app_step("avatarlab.apps.novel_views", "novel_views", **{"apps.out": lambda wc, i, o: o.grid}),
     threads: step_threads("light")
@@ -92,15 +92,15 @@ rule novel_views:
 rule reenact:
     input:
         avatar=lambda wc: PLAN.final_avatar(wc.subject),
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        source=f"{RESULTS}/subjects/{{source}}/fit_rgb.npz",
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
+        source=TREE.subject("{source}", "fit_rgb.npz"),
     output:
-        video=report(f"{RESULTS}/apps/{{subject}}/reenact_{{source}}.mp4", caption="../report/reenact.rst",
+        video=report(TREE.app("{subject}", "reenact_{source}.mp4"), caption="../report/reenact.rst",
                      category="Applications", subcategory="{subject}"),
-        frames=f"{RESULTS}/apps/{{subject}}/reenact_{{source}}.png",
-        meta=f"{RESULTS}/apps/{{subject}}/reenact_{{source}}.json",
+        frames=TREE.app("{subject}", "reenact_{source}.png"),
+        meta=TREE.app("{subject}", "reenact_{source}.json"),
     log:
-        f"{LOGS}/apps/{{subject}}/reenact_{{source}}.log",
+        LOG_TREE.app("{subject}", "reenact_{source}.log"),
     params:
         **app_step("avatarlab.apps.reenact", "reenact", **{
             "apps.out": lambda wc, i, o: o.video, "apps.source_dir": lambda wc, i, o: PLAN.subject_dir(wc.source)}),
@@ -116,11 +116,11 @@ rule reenact:
 rule telepresence:
     input:
         avatar=lambda wc: PLAN.final_avatar(wc.subject),
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
     output:
-        report=f"{RESULTS}/apps/{{subject}}/telepresence.json",
+        report=TREE.app("{subject}", "telepresence.json"),
     log:
-        f"{LOGS}/apps/{{subject}}/telepresence.log",
+        LOG_TREE.app("{subject}", "telepresence.log"),
     params:
         **app_step("avatarlab.apps.telepresence", "telepresence", **{"apps.out": lambda wc, i, o: o.report}),
     threads: step_threads("light")

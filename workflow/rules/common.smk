@@ -9,7 +9,9 @@ sys.path.insert(0, str(REPO / "src"))
 from snakemake.utils import validate  # noqa: E402
 
 from avatarlab.workflow.steps import Steps, chosen_scale, interpreter_first_on_path  # noqa: E402
-from avatarlab.workflow.layout import AvatarKey, alternation, avatar_folder_pattern  # noqa: E402
+from avatarlab.workflow import layout  # noqa: E402
+from avatarlab.workflow.layout import (  # noqa: E402
+    AvatarKey, ResultsTree, alternation, avatar_folder_pattern, write_planned)
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 interpreter_first_on_path()  # `.venv/bin/snakemake` works without an activated venv
@@ -18,11 +20,11 @@ validate(config, schema="../schemas/config.schema.yaml")  # a wrong key or value
 STEPS = Steps(REPO / "conf", config["scale"], config["head_model"], config.get("hydra_overrides", []))
 SCALE = STEPS.compose().scale
 PLAN = Plan(config, sweep_dir=REPO / "conf" / "sweep", scale=SCALE)
-RESULTS, LOGS = PLAN.results, PLAN.logs
-LANDING = Path(RESULTS, "report", "landing.html")  # the results card's tables: the HTML report's front page
+TREE, LOG_TREE = PLAN.tree, ResultsTree(PLAN.logs)  # every path of the results tree (workflow/layout.py)
+LANDING = Path(TREE.report("landing.html"))  # the results card's tables: the HTML report's front page
 if LANDING.is_file():
     config["report_landing"] = str(LANDING.resolve())
-TRACKING_READY = "results/mlflow.ready"
+TRACKING_READY = layout.TRACKING_READY
 # per kind of step (light, fit, train, finetune, speech): cpus (= threads locally), mem_mb, runtime, gpu; a cluster
 # executor (profiles/slurm) turns them into each job's request. `threads_per_job` overrides the cpus locally.
 STEP_RESOURCES = SCALE.resources

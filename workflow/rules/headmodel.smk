@@ -3,13 +3,13 @@
 
 rule render_demo:
     output:
-        grid=report(f"{RESULTS}/headmodel/render_grid.png", caption="../report/render_grid.rst",
+        grid=report(TREE.headmodel("render_grid.png"), caption="../report/render_grid.rst",
                     category="Head model"),
     log:
-        f"{LOGS}/headmodel/render_demo.log",
+        LOG_TREE.headmodel("render_demo.log"),
     params:
         **step_params("avatarlab.evaluate.head_model_demo", values=lambda wc, input, output: {"demo.out": output.grid},
-                      run_dir=lambda wc: f"{RESULTS}/headmodel/.hydra/render_demo"),
+                      run_dir=lambda wc: TREE.headmodel(".hydra", "render_demo")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -21,16 +21,16 @@ rule render_demo:
 
 rule dlib_check:
     output:
-        report=f"{RESULTS}/headmodel/dlib_check.json",
-        overlay=report(f"{RESULTS}/headmodel/dlib_check_overlay.png", caption="../report/dlib_check.rst",
+        report=TREE.headmodel("dlib_check.json"),
+        overlay=report(TREE.headmodel("dlib_check_overlay.png"), caption="../report/dlib_check.rst",
                        category="Head model"),
     log:
-        f"{LOGS}/headmodel/dlib_check.log",
+        LOG_TREE.headmodel("dlib_check.log"),
     params:
         **step_params("avatarlab.evaluate.dlib_check",
                       values=lambda wc, input, output: {"dlib_check.out": output.report,
                                                         "dlib_check.overlay": output.overlay},
-                      run_dir=lambda wc: f"{RESULTS}/headmodel/.hydra/dlib_check"),
+                      run_dir=lambda wc: TREE.headmodel(".hydra", "dlib_check")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),

@@ -6,14 +6,15 @@ def subject_step(module, name, **values):
     return step_params(module, values=lambda wc, input, output: {
         **PLAN.subject_values(wc.subject),
         **{k: v(input, output) if callable(v) else v for k, v in values.items()}},
-        run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/{name}")
+        run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", name))
 
 
 # (pretrain.smk)
 def real_set(name=None):
     """The preprocessed real image set that pretraining reads."""
-    folder = PLAN.subject_dir(name or PLAN.real_images["name"])
-    return {"fit": f"{folder}/fit_rgb.npz", "masks": f"{folder}/masks.npz", "frames": f"{folder}/frames.json"}
+    name = name or PLAN.real_images["name"]
+    return {"fit": TREE.subject(name, "fit_rgb.npz"), "masks": TREE.subject(name, "masks.npz"),
+            "frames": TREE.subject(name, "frames.json")}
 
 
 # (pretrain.smk)
@@ -24,7 +25,7 @@ def pretrain_step(name, strategy, extra, **values):
                 "pretrain.real_subject_dir": str(Path(input.fit).parent), **{k: v(input) for k, v in values.items()}}
 
     return step_params("avatarlab.train.pretrain", extra=lambda wc: (f"strategy={strategy(wc)}", *extra(wc)),
-                       values=fixed, run_dir=lambda wc: f"{RESULTS}/pretrain/{name(wc)}/.hydra")
+                       values=fixed, run_dir=lambda wc: TREE.pretrain(name(wc), ".hydra"))
 
 
 # (avatar.smk)
@@ -36,7 +37,7 @@ def avatar_key(wc):
 # (avatar.smk)
 def interpolated_input(key):
     """Variant (c) trains on the interpolated frames too."""
-    return [f"{PLAN.subject_dir(key.subject)}/interpolated.npz"] if key.variant == "c" else []
+    return [TREE.subject(key.subject, "interpolated.npz")] if key.variant == "c" else []
 
 
 # (avatar.smk)
@@ -51,7 +52,7 @@ def app_step(module, name, **values):
     return step_params(module, values=lambda wc, input, output: {
         **PLAN.subject_values(wc.subject), "apps.avatar": input.avatar, "apps.subject_dir": PLAN.subject_dir(wc.subject),
         **{k: v(wc, input, output) for k, v in values.items()}},
-        run_dir=lambda wc: f"{RESULTS}/apps/{wc.subject}/.hydra/{name}")
+        run_dir=lambda wc: TREE.app(wc.subject, ".hydra", name))
 
 
 # (speech.smk)

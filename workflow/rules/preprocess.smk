@@ -3,10 +3,10 @@
 
 rule synthesize_subject:
     output:
-        video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
-        truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
+        video=TREE.subject("{subject}", "input", "video.mp4"),
+        truth=TREE.subject("{subject}", "input", "truth.npz"),
     log:
-        f"{LOGS}/subjects/{{subject}}/synthesize.log",
+        LOG_TREE.subject("{subject}", "synthesize.log"),
     params:
         **step_params(
             "avatarlab.data.synthetic_subject",
@@ -14,7 +14,7 @@ rule synthesize_subject:
                 "subject.name": wc.subject, "subject.preset": PLAN.all_subjects[wc.subject].get("preset", "talking"),
                 "subject.seed": int(PLAN.all_subjects[wc.subject].get("seed", 0)), "subject.video_out": output.video,
                 "subject.truth_out": output.truth},
-            run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/synthesize"),
+            run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", "synthesize")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -28,10 +28,10 @@ rule extract_frames:
     input:
         media=lambda wc: PLAN.subject_inputs(wc.subject),
     output:
-        frames=directory(f"{RESULTS}/subjects/{{subject}}/frames"),
-        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+        frames=directory(TREE.subject("{subject}", "frames")),
+        meta=TREE.subject("{subject}", "frames.json"),
     log:
-        f"{LOGS}/subjects/{{subject}}/frames.log",
+        LOG_TREE.subject("{subject}", "frames.log"),
     params:
         **subject_step("avatarlab.preprocess.frames", "frames", **{"preprocess.inputs": lambda i, o: list(i.media)}),
     threads: step_threads("light")
@@ -45,13 +45,13 @@ rule extract_frames:
 
 rule detect_landmarks:
     input:
-        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
+        meta=TREE.subject("{subject}", "frames.json"),
         truth=lambda wc: PLAN.subject_truth(wc.subject),
     output:
-        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
-        report=f"{RESULTS}/subjects/{{subject}}/landmarks.json",
+        points=TREE.subject("{subject}", "landmarks.npz"),
+        report=TREE.subject("{subject}", "landmarks.json"),
     log:
-        f"{LOGS}/subjects/{{subject}}/landmarks.log",
+        LOG_TREE.subject("{subject}", "landmarks.log"),
     params:
         **subject_step("avatarlab.preprocess.track_landmarks", "landmarks"),
     threads: step_threads("light")
@@ -65,13 +65,13 @@ rule detect_landmarks:
 
 rule segment_masks:
     input:
-        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
+        points=TREE.subject("{subject}", "landmarks.npz"),
         truth=lambda wc: PLAN.subject_truth(wc.subject),
     output:
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
-        report=f"{RESULTS}/subjects/{{subject}}/masks.json",
+        masks=TREE.subject("{subject}", "masks.npz"),
+        report=TREE.subject("{subject}", "masks.json"),
     log:
-        f"{LOGS}/subjects/{{subject}}/masks.log",
+        LOG_TREE.subject("{subject}", "masks.log"),
     params:
         **subject_step("avatarlab.preprocess.masks", "masks"),
     threads: step_threads("light")
@@ -85,16 +85,16 @@ rule segment_masks:
 
 rule fit_rgb:
     input:
-        points=f"{RESULTS}/subjects/{{subject}}/landmarks.npz",
-        masks=f"{RESULTS}/subjects/{{subject}}/masks.npz",
+        points=TREE.subject("{subject}", "landmarks.npz"),
+        masks=TREE.subject("{subject}", "masks.npz"),
         truth=lambda wc: PLAN.subject_truth(wc.subject),
     output:
-        params=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
-        report=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
-        overlay=report(f"{RESULTS}/subjects/{{subject}}/fit_rgb_overlay.png", caption="../report/fit_rgb.rst",
+        params=TREE.subject("{subject}", "fit_rgb.npz"),
+        report=TREE.subject("{subject}", "fit_rgb.json"),
+        overlay=report(TREE.subject("{subject}", "fit_rgb_overlay.png"), caption="../report/fit_rgb.rst",
                        category="Preprocessing", subcategory="{subject}"),
     log:
-        f"{LOGS}/subjects/{{subject}}/fit_rgb.log",
+        LOG_TREE.subject("{subject}", "fit_rgb.log"),
     params:
         **subject_step("avatarlab.preprocess.fit_rgb", "fit_rgb"),
     threads: step_threads("fit")
@@ -108,13 +108,13 @@ rule fit_rgb:
 
 rule fit_rgbd:
     input:
-        truth=f"{RESULTS}/subjects/{{subject}}/input/truth.npz",
-        video=f"{RESULTS}/subjects/{{subject}}/input/video.mp4",
-        rgb=f"{RESULTS}/subjects/{{subject}}/fit_rgb.json",
+        truth=TREE.subject("{subject}", "input", "truth.npz"),
+        video=TREE.subject("{subject}", "input", "video.mp4"),
+        rgb=TREE.subject("{subject}", "fit_rgb.json"),
     output:
-        report=f"{RESULTS}/subjects/{{subject}}/fit_rgbd.json",
+        report=TREE.subject("{subject}", "fit_rgbd.json"),
     log:
-        f"{LOGS}/subjects/{{subject}}/fit_rgbd.log",
+        LOG_TREE.subject("{subject}", "fit_rgbd.log"),
     params:
         **subject_step("avatarlab.preprocess.fit_rgbd", "fit_rgbd", **{
             "fit_rgbd.out": lambda i, o: o.report, "fit_rgbd.video": lambda i, o: i.video,
@@ -133,19 +133,19 @@ rule train_interpolator:
     videos (whole), then used for each subject; the frames the interpolation experiment holds out are never among
     its training frames."""
     input:
-        meta=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.shared_videos],
-        motion=[f"{PLAN.subject_dir(s)}/frames.json" for s in PLAN.motion_videos],
+        meta=[TREE.subject(s, "frames.json") for s in PLAN.shared_videos],
+        motion=[TREE.subject(s, "frames.json") for s in PLAN.motion_videos],
     output:
-        model=f"{RESULTS}/interp/model.pt",
-        report=f"{RESULTS}/interp/train.json",
+        model=TREE.interp("model.pt"),
+        report=TREE.interp("train.json"),
     log:
-        f"{LOGS}/interp/train.log",
+        LOG_TREE.interp("train.log"),
     params:
         **step_params("avatarlab.preprocess.interp.pretrain", values=lambda wc, input, output: {
             "interp.subject_dirs": [str(Path(m).parent) for m in input.meta],
             "interp.motion_dirs": [str(Path(m).parent) for m in input.motion],
             "interp.out_dir": str(Path(output.model).parent)},
-            run_dir=lambda wc: f"{RESULTS}/interp/.hydra"),
+            run_dir=lambda wc: TREE.interp(".hydra")),
     threads: step_threads("fit")
     resources:
         **step_resources("fit"),
@@ -157,15 +157,15 @@ rule train_interpolator:
 
 rule interpolate_frames:
     input:
-        meta=f"{RESULTS}/subjects/{{subject}}/frames.json",
-        model=f"{RESULTS}/interp/model.pt",
+        meta=TREE.subject("{subject}", "frames.json"),
+        model=TREE.interp("model.pt"),
     output:
-        report=f"{RESULTS}/subjects/{{subject}}/interp.json",
-        frames=f"{RESULTS}/subjects/{{subject}}/interpolated.npz",
-        figure=report(f"{RESULTS}/subjects/{{subject}}/interp_comparison.png", caption="../report/interp.rst",
+        report=TREE.subject("{subject}", "interp.json"),
+        frames=TREE.subject("{subject}", "interpolated.npz"),
+        figure=report(TREE.subject("{subject}", "interp_comparison.png"), caption="../report/interp.rst",
                       category="Preprocessing", subcategory="{subject}"),
     log:
-        f"{LOGS}/subjects/{{subject}}/interp.log",
+        LOG_TREE.subject("{subject}", "interp.log"),
     params:
         **subject_step("avatarlab.preprocess.interp.run", "interp", **{"interp.model": lambda i, o: i.model}),
     threads: step_threads("fit")

@@ -6,7 +6,7 @@ rule init_tracking:
     output:
         TRACKING_READY,
     log:
-        "logs/init_tracking.log",
+        layout.TRACKING_LOG,
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -15,14 +15,14 @@ rule init_tracking:
 
 rule synthesize_portraits:
     output:
-        images=directory(f"{RESULTS}/subjects/{{subject}}/input/images"),
-        truth=f"{RESULTS}/subjects/{{subject}}/input/portraits_truth.npz",
+        images=directory(TREE.subject("{subject}", "input", "images")),
+        truth=TREE.subject("{subject}", "input", "portraits_truth.npz"),
     log:
-        f"{LOGS}/subjects/{{subject}}/portraits.log",
+        LOG_TREE.subject("{subject}", "portraits.log"),
     params:
         **step_params("avatarlab.data.portraits", values=lambda wc, input, output: {
             "subject.name": wc.subject, "subject.images_out": output.images, "subject.truth_out": output.truth},
-            run_dir=lambda wc: f"{RESULTS}/subjects/{wc.subject}/.hydra/portraits"),
+            run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", "portraits")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -37,10 +37,10 @@ rule pretrain_alpha:
         **real_set(),
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/pretrain/{{alpha}}/model.pt",
-        train=f"{RESULTS}/pretrain/{{alpha}}/train.json",
+        model=TREE.pretrain("{alpha}", "model.pt"),
+        train=TREE.pretrain("{alpha}", "train.json"),
     log:
-        f"{LOGS}/pretrain/{{alpha}}.log",
+        LOG_TREE.pretrain("{alpha}.log"),
     params:
         **pretrain_step(lambda wc: wc.alpha, lambda wc: wc.alpha, lambda wc: ()),
     threads: step_threads("train")
@@ -56,12 +56,12 @@ rule pretrain_beta:
     input:
         **real_set(),
         tracking=TRACKING_READY,
-        parent=f"{RESULTS}/pretrain/{{alpha}}/model.pt",
+        parent=TREE.pretrain("{alpha}", "model.pt"),
     output:
-        model=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/model.pt",
-        train=f"{RESULTS}/pretrain/{{beta}}_from_{{alpha}}/train.json",
+        model=TREE.pretrain("{beta}_from_{alpha}", "model.pt"),
+        train=TREE.pretrain("{beta}_from_{alpha}", "train.json"),
     log:
-        f"{LOGS}/pretrain/{{beta}}_from_{{alpha}}.log",
+        LOG_TREE.pretrain("{beta}_from_{alpha}.log"),
     params:
         **pretrain_step(lambda wc: f"{wc.beta}_from_{wc.alpha}", lambda wc: wc.beta, lambda wc: (),
                         **{"pretrain.init_model": lambda i: i.parent}),
@@ -81,12 +81,12 @@ rule pretrain_resolution:
     input:
         **real_set(),
         tracking=TRACKING_READY,
-        parent=lambda wc: f"{RESULTS}/pretrain/{PLAN.tier(wc.tier).parent}/model.pt",
+        parent=lambda wc: TREE.pretrain(PLAN.tier(wc.tier).parent, "model.pt"),
     output:
-        model=f"{RESULTS}/pretrain/{{tier}}/model.pt",
-        train=f"{RESULTS}/pretrain/{{tier}}/train.json",
+        model=TREE.pretrain("{tier}", "model.pt"),
+        train=TREE.pretrain("{tier}", "train.json"),
     log:
-        f"{LOGS}/pretrain/{{tier}}.log",
+        LOG_TREE.pretrain("{tier}.log"),
     params:
         **pretrain_step(lambda wc: wc.tier, lambda wc: PLAN.final_strategy(),
                         lambda wc: PLAN.tier(wc.tier).overrides(),
@@ -105,10 +105,10 @@ rule renderer_run:
         **real_set(),
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/pretrain/renderer_{{renderer}}/model.pt",
-        train=f"{RESULTS}/pretrain/renderer_{{renderer}}/train.json",
+        model=TREE.pretrain("renderer_{renderer}", "model.pt"),
+        train=TREE.pretrain("renderer_{renderer}", "train.json"),
     log:
-        f"{LOGS}/pretrain/renderer_{{renderer}}.log",
+        LOG_TREE.pretrain("renderer_{renderer}.log"),
     params:
         **pretrain_step(lambda wc: f"renderer_{wc.renderer}", lambda wc: "alpha1",
                         lambda wc: ("experiment=renderer", f"model.renderer={wc.renderer}")),
@@ -125,20 +125,20 @@ rule evaluate_pretrained:
     """A pretrained model on held-out head-model renders beside its trivial baselines (mean colour, nearest
     training sample); its own step, so a new metric re-scores without retraining."""
     input:
-        model=f"{RESULTS}/pretrain/{{model}}/model.pt",
+        model=TREE.pretrain("{model}", "model.pt"),
         **real_set(),
         tracking=TRACKING_READY,
     output:
-        report=f"{RESULTS}/pretrain/{{model}}/eval.json",
-        samples=report(f"{RESULTS}/pretrain/{{model}}/eval_samples.png", caption="../report/pretrain.rst",
+        report=TREE.pretrain("{model}", "eval.json"),
+        samples=report(TREE.pretrain("{model}", "eval_samples.png"), caption="../report/pretrain.rst",
                        category="Pretraining", subcategory="{model}"),
     log:
-        f"{LOGS}/pretrain/{{model}}_eval.log",
+        LOG_TREE.pretrain("{model}_eval.log"),
     params:
         **step_params("avatarlab.evaluate.pretrained", values=lambda wc, input, output: {
             "evaluate.model": input.model, "evaluate.out": output.report,
             "evaluate.real_subject_dir": str(Path(input.fit).parent)},
-            run_dir=lambda wc: f"{RESULTS}/pretrain/{wc.model}/.hydra/eval"),
+            run_dir=lambda wc: TREE.pretrain(wc.model, ".hydra", "eval")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -150,14 +150,14 @@ rule evaluate_pretrained:
 
 rule renderer_experiment:
     input:
-        runs=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/train.json", renderer=PLAN.renderers),
-        evals=expand(f"{RESULTS}/pretrain/renderer_{{renderer}}/eval.json", renderer=PLAN.renderers),
+        runs=expand(TREE.pretrain("renderer_{renderer}", "train.json"), renderer=PLAN.renderers),
+        evals=expand(TREE.pretrain("renderer_{renderer}", "eval.json"), renderer=PLAN.renderers),
     output:
-        report=f"{RESULTS}/report/renderer_experiment.json",
-        figure=report(f"{RESULTS}/report/renderer_experiment.png", caption="../report/renderer_experiment.rst",
+        report=TREE.report("renderer_experiment.json"),
+        figure=report(TREE.report("renderer_experiment.png"), caption="../report/renderer_experiment.rst",
                       category="Pretraining"),
     log:
-        f"{LOGS}/report/renderer_experiment.log",
+        LOG_TREE.report("renderer_experiment.log"),
     params:
         code=STEPS.code("avatarlab.evaluate.renderer_experiment"),
     conda:
@@ -177,22 +177,22 @@ rule control_figure:
     head model's render of the same parameters, scored beside trivial predictors (control_figures in
     workflow/config.yaml)."""
     input:
-        models=lambda wc: [f"{RESULTS}/pretrain/{m}/model.pt" for m in PLAN.control_figures[wc.figure]["models"]],
-        fits=[f"{PLAN.subject_dir(s)}/fit_rgb.npz" for s in PLAN.shared_videos],
-        masks=[f"{PLAN.subject_dir(s)}/masks.npz" for s in PLAN.shared_videos],
+        models=lambda wc: [TREE.pretrain(m, "model.pt") for m in PLAN.control_figures[wc.figure]["models"]],
+        fits=[TREE.subject(s, "fit_rgb.npz") for s in PLAN.shared_videos],
+        masks=[TREE.subject(s, "masks.npz") for s in PLAN.shared_videos],
     output:
-        report=f"{RESULTS}/pretrain/controls/{{figure}}.json",
-        grid=report(f"{RESULTS}/pretrain/controls/{{figure}}.png", caption="../report/pretrain.rst",
+        report=TREE.controls("{figure}.json"),
+        grid=report(TREE.controls("{figure}.png"), caption="../report/pretrain.rst",
                     category="Pretraining", subcategory="controls"),
     log:
-        f"{LOGS}/pretrain/controls_{{figure}}.log",
+        LOG_TREE.pretrain("controls_{figure}.log"),
     wildcard_constraints:
         figure=control_figure_names(),
     params:
         **step_params("avatarlab.evaluate.controls", values=lambda wc, input, output: {
             "controls.models": list(input.models), "controls.subject_dirs": [str(Path(f).parent) for f in input.fits],
             "controls.control": PLAN.control_figures[wc.figure]["control"], "controls.out": output.grid},
-            run_dir=lambda wc: f"{RESULTS}/pretrain/controls/.hydra/{wc.figure}"),
+            run_dir=lambda wc: TREE.controls(".hydra", wc.figure)),
     threads: step_threads("light")
     resources:
         **step_resources("light"),

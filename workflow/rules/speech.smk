@@ -3,13 +3,13 @@
 
 rule speech_corpus:
     output:
-        corpus=f"{RESULTS}/speech/corpus.npz",
-        summary=f"{RESULTS}/speech/corpus.json",
+        corpus=TREE.speech("corpus.npz"),
+        summary=TREE.speech("corpus.json"),
     log:
-        f"{LOGS}/speech/corpus.log",
+        LOG_TREE.speech("corpus.log"),
     params:
         **step_params("avatarlab.speech.corpus", values=lambda wc, input, output: {"speech.corpus": output.corpus},
-                      run_dir=lambda wc: f"{RESULTS}/speech/.hydra/corpus"),
+                      run_dir=lambda wc: TREE.speech(".hydra", "corpus")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -21,19 +21,19 @@ rule speech_corpus:
 
 rule speech_train:
     input:
-        corpus=f"{RESULTS}/speech/corpus.npz",
+        corpus=TREE.speech("corpus.npz"),
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/speech/{{speech_model}}/model.pt",
-        metrics=f"{RESULTS}/speech/{{speech_model}}/metrics.json",
+        model=TREE.speech("{speech_model}", "model.pt"),
+        metrics=TREE.speech("{speech_model}", "metrics.json"),
     log:
-        f"{LOGS}/speech/{{speech_model}}.log",
+        LOG_TREE.speech("{speech_model}.log"),
     params:
         **step_params(
             "avatarlab.speech.train", extra=lambda wc: (f"speech_model={wc.speech_model}",),
             values=lambda wc, input, output: {"speech.corpus": input.corpus,
                                               "speech.out_dir": str(Path(output.model).parent)},
-            run_dir=lambda wc: f"{RESULTS}/speech/.hydra/{wc.speech_model}"),
+            run_dir=lambda wc: TREE.speech(".hydra", wc.speech_model)),
     threads: step_threads("speech")
     resources:
         **step_resources("speech"),
@@ -45,21 +45,21 @@ rule speech_train:
 
 rule speak:
     input:
-        speech=f"{RESULTS}/speech/lstm_reg/model.pt",
+        speech=TREE.speech("lstm_reg", "model.pt"),
         avatar=lambda wc: PLAN.final_avatar(wc.subject),
-        fit=f"{RESULTS}/subjects/{{subject}}/fit_rgb.npz",
+        fit=TREE.subject("{subject}", "fit_rgb.npz"),
         wav=[config["speech_wav"]] if config.get("speech_wav") else [],
     output:
-        video=report(f"{RESULTS}/speech/speak_{{subject}}.mp4", caption="../report/speak.rst", category="Speech"),
-        strip=f"{RESULTS}/speech/speak_{{subject}}.png",
-        meta=f"{RESULTS}/speech/speak_{{subject}}.json",
+        video=report(TREE.speech("speak_{subject}.mp4"), caption="../report/speak.rst", category="Speech"),
+        strip=TREE.speech("speak_{subject}.png"),
+        meta=TREE.speech("speak_{subject}.json"),
     log:
-        f"{LOGS}/speech/speak_{{subject}}.log",
+        LOG_TREE.speech("speak_{subject}.log"),
     params:
         **step_params("avatarlab.speech.animate", values=lambda wc, input, output: {
             **PLAN.subject_values(wc.subject), "apps.subject_dir": PLAN.subject_dir(wc.subject), **speech_audio(),
             "speech.animate_model": input.speech, "apps.avatar": input.avatar, "apps.out": output.video},
-            run_dir=lambda wc: f"{RESULTS}/speech/.hydra/speak_{wc.subject}"),
+            run_dir=lambda wc: TREE.speech(".hydra", f"speak_{wc.subject}")),
         audio=lambda wc: speech_audio(),
     threads: step_threads("light")
     resources:
@@ -74,17 +74,17 @@ rule speech_real_eval:
     """The seed-000 audio models (trained on the synthetic corpus, then fine-tuned on the real clips with the scored
     clip or speaker left out) on real GRID and Obama clips, beside a still mouth, where the clips exist."""
     input:
-        models=[f"{RESULTS}/speech/{m}/model.pt" for m in PLAN.speech_audio_models],
+        models=[TREE.speech(m, "model.pt") for m in PLAN.speech_audio_models],
         clips=PLAN.real_speech_clips,
     output:
-        report=f"{RESULTS}/speech/real_eval.json",
+        report=TREE.speech("real_eval.json"),
     log:
-        f"{LOGS}/speech/real_eval.log",
+        LOG_TREE.speech("real_eval.log"),
     params:
         **step_params("avatarlab.speech.real_eval", values=lambda wc, input, output: {
             "speech.real_clips": list(input.clips), "speech.real_models": list(input.models),
             "speech.real_eval_out": output.report},
-            run_dir=lambda wc: f"{RESULTS}/speech/.hydra/real_eval"),
+            run_dir=lambda wc: TREE.speech(".hydra", "real_eval")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),

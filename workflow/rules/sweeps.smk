@@ -4,24 +4,24 @@
 
 rule sweep_finetune:
     input:
-        fit=lambda wc: f"{PLAN.subject_dir(PLAN.sweeps[wc.sweep].subject)}/fit_rgb.npz",
-        masks=lambda wc: f"{PLAN.subject_dir(PLAN.sweeps[wc.sweep].subject)}/masks.npz",
-        model=lambda wc: f"{RESULTS}/pretrain/{PLAN.sweeps[wc.sweep].init}/model.pt",
+        fit=lambda wc: TREE.subject(PLAN.sweeps[wc.sweep].subject, "fit_rgb.npz"),
+        masks=lambda wc: TREE.subject(PLAN.sweeps[wc.sweep].subject, "masks.npz"),
+        model=lambda wc: TREE.pretrain(PLAN.sweeps[wc.sweep].init, "model.pt"),
         tracking=TRACKING_READY,
     output:
-        model=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/model.pt",
-        train=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/train.json",
+        model=TREE.sweep("{sweep}", "{point}", "model.pt"),
+        train=TREE.sweep("{sweep}", "{point}", "train.json"),
     wildcard_constraints:
         sweep=sweep_names("finetune"),
     log:
-        f"{LOGS}/sweeps/{{sweep}}/{{point}}.log",
+        LOG_TREE.sweep("{sweep}", "{point}.log"),
     params:
         **step_params(
             "avatarlab.train.finetune",
             extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}", *PLAN.sweep_point(wc.sweep, wc.point).overrides),
             values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), output.model),
                                               "finetune.init_model": input.model, **sweep_tags(wc)},
-            run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra"),
+            run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra")),
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),
@@ -35,24 +35,24 @@ rule sweep_evaluate_avatar:
     """A fine-tuning point scored like every avatar (same test frames and baselines; the point's overrides are not
     passed: every point is scored the same way)."""
     input:
-        model=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/model.pt",
-        fit=lambda wc: f"{PLAN.subject_dir(PLAN.sweeps[wc.sweep].subject)}/fit_rgb.npz",
-        masks=lambda wc: f"{PLAN.subject_dir(PLAN.sweeps[wc.sweep].subject)}/masks.npz",
-        landmarks=lambda wc: f"{PLAN.subject_dir(PLAN.sweeps[wc.sweep].subject)}/landmarks.npz",
+        model=TREE.sweep("{sweep}", "{point}", "model.pt"),
+        fit=lambda wc: TREE.subject(PLAN.sweeps[wc.sweep].subject, "fit_rgb.npz"),
+        masks=lambda wc: TREE.subject(PLAN.sweeps[wc.sweep].subject, "masks.npz"),
+        landmarks=lambda wc: TREE.subject(PLAN.sweeps[wc.sweep].subject, "landmarks.npz"),
         tracking=TRACKING_READY,
     output:
-        report=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/eval.json",
-        frames=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/test_frames.png",
+        report=TREE.sweep("{sweep}", "{point}", "eval.json"),
+        frames=TREE.sweep("{sweep}", "{point}", "test_frames.png"),
     wildcard_constraints:
         sweep=sweep_names("finetune"),
     log:
-        f"{LOGS}/sweeps/{{sweep}}/{{point}}_eval.log",
+        LOG_TREE.sweep("{sweep}", "{point}_eval.log"),
     params:
         **step_params(
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}",),
             values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), input.model),
                                               "evaluate.model": input.model, "evaluate.out": output.report},
-            run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra/eval"),
+            run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra", "eval")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -66,15 +66,15 @@ rule sweep_pretrain:
     input:
         **real_set(),
         tracking=TRACKING_READY,
-        parent=lambda wc: ([f"{RESULTS}/pretrain/{PLAN.sweeps[wc.sweep].parent}/model.pt"]
+        parent=lambda wc: ([TREE.pretrain(PLAN.sweeps[wc.sweep].parent, "model.pt")]
                            if PLAN.sweeps[wc.sweep].parent else []),
     output:
-        model=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/model.pt",
-        train=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/train.json",
+        model=TREE.sweep("{sweep}", "{point}", "model.pt"),
+        train=TREE.sweep("{sweep}", "{point}", "train.json"),
     wildcard_constraints:
         sweep=sweep_names("pretrain"),
     log:
-        f"{LOGS}/sweeps/{{sweep}}/{{point}}.log",
+        LOG_TREE.sweep("{sweep}", "{point}.log"),
     params:
         **step_params(
             "avatarlab.train.pretrain",
@@ -83,7 +83,7 @@ rule sweep_pretrain:
                 "pretrain.name": f"{wc.sweep}/{wc.point}", "pretrain.out_dir": str(Path(output.model).parent),
                 "pretrain.real_subject_dir": str(Path(input.fit).parent),
                 **({"pretrain.init_model": input.parent[0]} if input.parent else {}), **sweep_tags(wc)},
-            run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra"),
+            run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra")),
     threads: step_threads("train")
     resources:
         **step_resources("train"),
@@ -95,21 +95,21 @@ rule sweep_pretrain:
 
 rule sweep_evaluate_pretrained:
     input:
-        model=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/model.pt",
+        model=TREE.sweep("{sweep}", "{point}", "model.pt"),
         **real_set(),
         tracking=TRACKING_READY,
     output:
-        report=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/eval.json",
-        samples=f"{RESULTS}/sweeps/{{sweep}}/{{point}}/eval_samples.png",
+        report=TREE.sweep("{sweep}", "{point}", "eval.json"),
+        samples=TREE.sweep("{sweep}", "{point}", "eval_samples.png"),
     wildcard_constraints:
         sweep=sweep_names("pretrain"),
     log:
-        f"{LOGS}/sweeps/{{sweep}}/{{point}}_eval.log",
+        LOG_TREE.sweep("{sweep}", "{point}_eval.log"),
     params:
         **step_params("avatarlab.evaluate.pretrained", values=lambda wc, input, output: {
             "evaluate.model": input.model, "evaluate.out": output.report,
             "evaluate.real_subject_dir": str(Path(input.fit).parent)},
-            run_dir=lambda wc: f"{RESULTS}/sweeps/{wc.sweep}/{wc.point}/.hydra/eval"),
+            run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra", "eval")),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -125,12 +125,12 @@ rule sweep_table:
         evals=lambda wc: PLAN.sweep_point_evals(wc.sweep),
         spec=lambda wc: str(PLAN.sweep_files / f"{wc.sweep}.yaml"),
     output:
-        table=f"{RESULTS}/sweeps/{{sweep}}/table.md",
-        csv=f"{RESULTS}/sweeps/{{sweep}}/table.csv",
-        figure=report(f"{RESULTS}/sweeps/{{sweep}}/figure.png", caption="../report/sweep.rst", category="Sweeps",
+        table=TREE.sweep("{sweep}", "table.md"),
+        csv=TREE.sweep("{sweep}", "table.csv"),
+        figure=report(TREE.sweep("{sweep}", "figure.png"), caption="../report/sweep.rst", category="Sweeps",
                       subcategory="{sweep}"),
     log:
-        f"{LOGS}/sweeps/{{sweep}}/table.log",
+        LOG_TREE.sweep("{sweep}", "table.log"),
     params:
         code=STEPS.code("avatarlab.evaluate.sweep_report"),
         folder=lambda wc: PLAN.sweep_dir(wc.sweep),

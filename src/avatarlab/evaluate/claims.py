@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 from avatarlab.evaluate.runs import base_avatars, seed_noise
-from avatarlab.evaluate.table import Table, read_json
+from avatarlab.evaluate.table import Table
 from avatarlab.seed_stats import mean_ci, single_run_threshold
+from avatarlab.workflow.layout import ResultsTree
 
 PUBLISHED_INTERP_GAIN_DB = 0.17  # variant (c) over (b), section 4.3
 PRETRAINED_LEVEL_DB = 29.0  # "~30 dB": the claim holds from 1 dB below it
@@ -71,8 +71,8 @@ def beats(avatar: dict) -> bool:
     return bool(gain and gain["gain"] > 0)
 
 
-def renderer_claim(results: Path) -> list[dict]:
-    exp = read_json(results / "report" / "renderer_experiment.json")
+def renderer_claim(tree: ResultsTree) -> list[dict]:
+    exp = tree.load(tree.report("renderer_experiment.json"))
     if not exp:
         return []
     ratio = exp.get("iteration_ratio")
@@ -88,10 +88,10 @@ def renderer_claim(results: Path) -> list[dict]:
                  noise="one run per renderer", verdict=verdict(e))]
 
 
-def pretrained_claims(results: Path) -> list[dict]:
+def pretrained_claims(tree: ResultsTree) -> list[dict]:
     rows = []
     for name in ("alpha1", "alpha2"):
-        ev, tr = (read_json(results / "pretrain" / name / f) for f in ("eval.json", "train.json"))
+        ev, tr = (tree.load(tree.pretrain(name, f)) for f in ("eval.json", "train.json"))
         if not (ev and tr):
             continue
         m, g = ev["model"], ev["gain"]["psnr_head"]
@@ -172,9 +172,9 @@ def interpolation_claim(avatars: list[dict], final: str, threshold: float | None
                  verdict=verdict(e))]
 
 
-def untestable_claims(results: Path) -> list[dict]:
+def untestable_claims(tree: ResultsTree) -> list[dict]:
     rows = []
-    rgbd = [r for r in (read_json(p) for p in sorted(results.glob("subjects/*/fit_rgbd.json"))) if r and
+    rgbd = [r for r in (tree.load(p) for p in tree.find("subjects", "*/fit_rgbd.json")) if r and
             "accuracy_mm" in r]
     if rgbd:
         rows.append(dict(claim="RGBD fit accuracy sqrt(Loss3) ~0.2 mm on ZED2 captures", where="2.3",
@@ -193,7 +193,7 @@ def untestable_claims(results: Path) -> list[dict]:
     return rows
 
 
-def claims_table(results: Path, avatars: list[dict], final: str, scale: str) -> Table:
+def claims_table(tree: ResultsTree, avatars: list[dict], final: str, scale: str) -> Table:
     """Every quantitative claim of the dissertation beside this run's measurement, its baseline and the noise,
     with RULE's verdict: reproduced / not reproduced / within noise / not testable (and why)."""
     sd, dof = seed_noise(avatars)
@@ -203,8 +203,8 @@ def claims_table(results: Path, avatars: list[dict], final: str, scale: str) -> 
     table = Table("claims", "The dissertation's claims, measured by this run", ["claim", "where", "published",
                   "this_run", "baseline", "noise", "verdict"], f"Scale '{scale}'. {RULE}")
     base = base_avatars(avatars)
-    for row in (renderer_claim(results) + pretrained_claims(results) + alpha_family_claim(base, threshold, noise)
+    for row in (renderer_claim(tree) + pretrained_claims(tree) + alpha_family_claim(base, threshold, noise)
                 + final_recipe_claim(base, final, threshold, noise)
-                + interpolation_claim(avatars, final, threshold, noise) + untestable_claims(results)):
+                + interpolation_claim(avatars, final, threshold, noise) + untestable_claims(tree)):
         table.add(**row)
     return table

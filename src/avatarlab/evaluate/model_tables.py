@@ -3,13 +3,13 @@ models and their controlled sweeps, the renderer experiment, and the application
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from avatarlab.evaluate.runs import load_runs
-from avatarlab.evaluate.table import Headline, Table, gain_columns, not_beating, read_json
+from avatarlab.evaluate.table import Headline, Table, gain_columns, not_beating
+from avatarlab.workflow.layout import ResultsTree
 
 
-def preprocessing_table(results: Path) -> Table:
+def preprocessing_table(tree: ResultsTree) -> Table:
     table = Table("preprocessing", "Preprocessing per subject",
                   ["subject", "frames", "landmarks_found", "landmark_nme_vs_truth", "mask_iou", "fit_landmark_px",
                    "fit_shape_mm", "fit_expression_mm", "fit_jaw_deg", "rgbd_accuracy_mm", "rgbd_vertex_mm",
@@ -28,9 +28,9 @@ def preprocessing_table(results: Path) -> Table:
                          "interp_xvfi_psnr", "interp_gain_vs_crossfade_db"],
                   ci_columns={"interp_gain_vs_crossfade_db": "interp_gain_vs_crossfade_ci95",
                               "interp_gain_vs_farneback_db": "interp_gain_vs_farneback_ci95"})
-    for folder in sorted(p for p in (results / "subjects").glob("*") if (p / "fit_rgb.json").is_file()):
-        lm, masks, fit = (read_json(folder / f) or {} for f in ("landmarks.json", "masks.json", "fit_rgb.json"))
-        rgbd, interp = read_json(folder / "fit_rgbd.json") or {}, read_json(folder / "interp.json") or {}
+    for folder in (p.parent for p in tree.find("subjects", "*/fit_rgb.json")):
+        lm, masks, fit = (tree.load(folder / f) or {} for f in ("landmarks.json", "masks.json", "fit_rgb.json"))
+        rgbd, interp = tree.load(folder / "fit_rgbd.json") or {}, tree.load(folder / "interp.json") or {}
         truth = fit.get("truth", {})
         table.add(subject=folder.name, frames=fit.get("frames"), landmarks_found=lm.get("detection_rate"),
                   landmark_nme_vs_truth=lm.get("nme_mean"), mask_iou=masks.get("iou_mean"),
@@ -58,7 +58,7 @@ PRETRAIN_COLUMNS = ["model", "iterations", "seconds", "samples_per_second", "psn
                     "nearest_psnr_head", "gain", "psnr", "ssim", "st_lpips", "best_baseline_st_lpips", "lpips"]
 
 
-def pretraining_table(results: Path) -> Table:
+def pretraining_table(tree: ResultsTree) -> Table:
     table = Table("pretraining", "Pretrained head models on held-out head-model renders, beside trivial baselines",
                   PRETRAIN_COLUMNS,
                   "psnr_head: PSNR over the head region (true mask) - the background is grey in every image and "
@@ -68,7 +68,7 @@ def pretraining_table(results: Path) -> Table:
                   shown=["model", "iterations", "seconds", "psnr_head", "mean_colour_psnr_head", "nearest_psnr_head",
                          "gain", "st_lpips"],
                   headline=Headline("psnr_head", ("model",), gain_ci=None, baseline=None))
-    for run in load_runs(results, "pretrain/*"):
+    for run in load_runs(tree, "pretrain", "*"):
         if run["name"].startswith("renderer_"):
             continue
         ev, tr = run["eval"], run["train"]
@@ -83,7 +83,7 @@ def pretraining_table(results: Path) -> Table:
     return table
 
 
-def controls_table(results: Path) -> Table:
+def controls_table(tree: ResultsTree) -> Table:
     table = Table("controls", "Pretrained models on held-out frames with one control swept (dissertation figures 27, "
                   "29-32)", ["figure", "control", "model", "frames", "psnr_head", "mean_colour_psnr_head",
                              "unswept_psnr_head", "gain", "st_lpips", "best_baseline_st_lpips",
@@ -94,8 +94,8 @@ def controls_table(results: Path) -> Table:
                   "the frame's mean colour inside each mask, and the render of the frame's own parameters as if "
                   "the control did nothing (unswept). response_correlation: correlation of the model's change "
                   "along the sweep with the head model's (0: ignores the control). One run per model.")
-    for path in sorted(results.glob("pretrain/controls/*.json")):
-        report = read_json(path)
+    for path in tree.find("controls", "*.json"):
+        report = tree.load(path)
         for name, r in report["models"].items():
             table.add(figure=path.stem, control=report["control"], model=name, frames=len(report["frames"]),
                       psnr_head=r["model"]["psnr_head"],
@@ -108,14 +108,14 @@ def controls_table(results: Path) -> Table:
     return table
 
 
-def renderer_table(results: Path) -> Table:
+def renderer_table(tree: ResultsTree) -> Table:
     table = Table("renderer_experiment", "Renderer experiment (proposed vs HeadNeRF's block)",
                   ["renderer", "iterations_to_target", "target_psnr", "final_train_psnr", "eval_psnr_head",
                    "eval_best_baseline_psnr_head", "eval_gain", "eval_st_lpips", "eval_best_baseline_st_lpips",
                    "seconds", "iteration_ratio", "claim_holds"],
                   "Claim (dissertation): the proposed renderer needs fewer than half the iterations (ratio > 2) to "
                   "reach the PSNR the baseline renderer ends with.")
-    exp = read_json(results / "report" / "renderer_experiment.json")
+    exp = tree.load(tree.report("renderer_experiment.json"))
     if exp:
         for name in ("proposed", "baseline"):
             ev = exp["eval"][name]
@@ -137,12 +137,12 @@ def renderer_table(results: Path) -> Table:
     return table
 
 
-def applications_table(results: Path) -> Table:
+def applications_table(tree: ResultsTree) -> Table:
     table = Table("applications", "Applications: telepresence payload and expression transfer",
                   ["subject", "values_per_frame", "params_float16_bytes", "params_float32_bytes", "jpeg_bytes",
                    "jpeg_over_float16", "float16_render_psnr_db", "receiver_render_s_per_frame",
                    "transfer_frames", "transfer_render_s_per_frame"])
-    for path in sorted(results.glob("apps/*/telepresence.json")):
+    for path in tree.find("apps", "*/telepresence.json"):
         tel = json.loads(path.read_text())
         transfer = next((json.loads(p.read_text()) for p in sorted(path.parent.glob("reenact_*.json"))), {})
         jpeg_key = next(iter(tel["jpeg_bytes_per_frame"]))

@@ -9,7 +9,8 @@ that do not beat their best baseline. Tables (CSV + Markdown) in `<report>/table
 `<report>/figures/`: quality vs fine-tuning time (curves, baselines as lines) and vs render time (figures 57-58),
 image grids. A number a run could not measure (LPIPS without the backbone, identity without a detected face) is
 written "missing", never filled in.
-`python -m avatarlab.evaluate.report report.results_dir=results/tiny`
+`python -m avatarlab.evaluate.report report.results_dir=results/tiny [report.planned=<JSON list of files>]`: with
+`report.planned` (the workflow's report_inputs rule writes it), only the results the workflow planned are read.
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ from avatarlab.evaluate.runs import load_avatars
 from avatarlab.evaluate.speech_tables import speech_table, speech_timing_table
 from avatarlab.evaluate.table import MISSING, Table, fmt  # noqa: F401 (the report's API)
 from avatarlab.io import atomic_path
+from avatarlab.workflow.layout import ResultsTree, read_planned
 
 log = logging.getLogger(__name__)
 
@@ -53,13 +55,15 @@ READS = ('report',)  # the config sections this step reads (avatarlab/entry.py)
 REPORT_PARTS = ("tables", "figures", "README.md", "summary.json")
 
 
-def build(results: Path, out: Path, final: str, scale: str) -> dict:
-    """Writes the report into a staging folder beside `out`, then moves each part into place (summary.json last): an
-    interrupted report leaves the previous one whole."""
+def build(results: ResultsTree | Path, out: Path, final: str, scale: str) -> dict:
+    """Writes the report of `results` (a tree, or its folder: every finished result in it) into a staging folder
+    beside `out`, then moves each part into place (summary.json last): an interrupted report leaves the previous one
+    whole."""
+    tree = results if isinstance(results, ResultsTree) else ResultsTree(Path(results))
     staging = out.parent / f".{out.name}.staging"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
-    summary = write_report(results, staging, final, scale)
+    summary = write_report(tree, staging, final, scale)
     out.mkdir(parents=True, exist_ok=True)
     for part in REPORT_PARTS:
         new, old = staging / part, out / part
@@ -76,17 +80,17 @@ def build(results: Path, out: Path, final: str, scale: str) -> dict:
     return summary
 
 
-def write_report(results: Path, out: Path, final: str, scale: str) -> dict:
+def write_report(tree: ResultsTree, out: Path, final: str, scale: str) -> dict:
     tables_dir, figures_dir = out / "tables", out / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)
-    avatars = load_avatars(results)
+    avatars = load_avatars(tree)
     finals, final_baselines = final_avatar_table(avatars, final)
-    tables = [preprocessing_table(results), pretraining_table(results), controls_table(results),
-              renderer_table(results), finals,
+    tables = [preprocessing_table(tree), pretraining_table(tree), controls_table(tree),
+              renderer_table(tree), finals,
               final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
               stage2_table(avatars), interp_table(avatars, final),
-              comparison_table(avatars, final, scale), claims_table(results, avatars, final, scale),
-              applications_table(results), speech_table(results, scale), speech_timing_table(results),
+              comparison_table(avatars, final, scale), claims_table(tree, avatars, final, scale),
+              applications_table(tree), speech_table(tree, scale), speech_timing_table(tree),
               substitutions_table()]
     for table in tables:
         table.write(tables_dir)
@@ -94,17 +98,18 @@ def write_report(results: Path, out: Path, final: str, scale: str) -> dict:
     for a in avatars:
         if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
             figures.append(copy_figure(a["dir"] / "test_frames.png", figures_dir / f"test_frames_{a['subject']}.png"))
-    for path in sorted(results.glob("apps/*/*.png")):
+    for path in tree.find("apps", "*/*.png"):
         figures.append(copy_figure(path, figures_dir / f"{path.parent.name}_{path.name}"))
-    for path in sorted(results.glob("speech/speak_*.png")):
+    for path in tree.find("speech", "speak_*.png"):
         figures.append(copy_figure(path, figures_dir / path.name))
     for name in ("alpha1", "alpha2", final):
-        figures.append(copy_figure(results / "pretrain" / name / "eval_samples.png",
-                                   figures_dir / f"pretrained_{name}_held_out.png"))
-    for path in sorted(results.glob("pretrain/controls/*.png")):
+        figures += [copy_figure(p, figures_dir / f"pretrained_{name}_held_out.png")
+                    for p in tree.find("pretrain", f"{name}/eval_samples.png")]
+    for path in tree.find("controls", "*.png"):
         figures.append(copy_figure(path, figures_dir / f"pretrained_controls_{path.name}"))
-    figures += [copy_figure(results / "headmodel" / "render_grid.png", figures_dir / "head_model_sweeps.png"),
-                copy_figure(results / "report" / "renderer_experiment.png", figures_dir / "renderer_experiment.png")]
+    figures += [copy_figure(p, figures_dir / "head_model_sweeps.png") for p in tree.find("headmodel", "render_grid.png")]
+    figures += [copy_figure(p, figures_dir / "renderer_experiment.png")
+                for p in tree.find("report", "renderer_experiment.png")]
     figures = [f for f in figures if f is not None]
     lines = [f"# avatarlab report - scale `{scale}`", "",
              "Every number below was read from a file a workflow step wrote (see `results/` and the MLflow store); "
@@ -126,7 +131,8 @@ def write_report(results: Path, out: Path, final: str, scale: str) -> dict:
 @entry_point(READS)
 def main(cfg, device) -> None:
     rep = cfg.report
-    summary = build(Path(rep.results_dir), Path(rep.out_dir), str(rep.final_recipe), cfg.report.scale)
+    tree = ResultsTree(Path(rep.results_dir), read_planned(rep.get("planned")))
+    summary = build(tree, Path(rep.out_dir), str(rep.final_recipe), cfg.report.scale)
     log.info("report: %d avatars, tables %s, %d figures -> %s", summary["avatars"], summary["rows"],
              len(summary["figures"]), rep.out_dir)
 

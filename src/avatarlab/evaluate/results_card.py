@@ -31,6 +31,7 @@ from avatarlab.evaluate.speech_tables import speech_table
 from avatarlab.evaluate.table import Headline, Table, read_json
 from avatarlab.io import atomic_path
 from avatarlab.workflow import step_times
+from avatarlab.workflow.layout import ResultsTree, read_planned
 
 ROOT = Path(__file__).resolve().parents[3]
 #: CPU flags that decide which float kernels run (and so the last digits of a result)
@@ -121,7 +122,7 @@ def interpolated(table: Table) -> Table:
     return table
 
 
-def headline_tables(results: Path, final: str, scale: str) -> list[Table]:
+def headline_tables(results: ResultsTree, final: str, scale: str) -> list[Table]:
     avatars = load_avatars(results)
     finals, _ = final_avatar_table(avatars, final)
     speech = speech_table(results, scale)
@@ -185,9 +186,11 @@ def write_card(results: Path, final: str, scale: str, start_file: Path | None, l
             lines += ["", "## Step times", "", step_times.table(step_times.parse_log(log), os.cpu_count() or 1)]
         except ConfigError as err:
             lines += ["", "## Step times", "", f"not read: {err}"]
-    tables = headline_tables(results, final, scale)
+    planned = ResultsTree(results).report("planned.json")  # the results the workflow planned (report_inputs)
+    tree = ResultsTree(results, read_planned(planned) if planned.is_file() else None)
+    tables = headline_tables(tree, final, scale)
     lines += ["", "## Headline tables", ""] + [t.markdown() for t in tables]
-    out = results / "report" / "RESULTS.md"
+    out = tree.report("RESULTS.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
@@ -215,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     scale = args.results.name
     final = args.final or "beta6_from_alpha2"
-    summary = read_json(args.results / "report" / "summary.json") or {}
+    summary = read_json(ResultsTree(args.results).report("summary.json")) or {}
     final = summary.get("final_recipe", final)
     try:
         log = args.log or step_times.newest_log(Path.cwd())

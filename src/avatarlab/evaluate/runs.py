@@ -3,28 +3,25 @@ and an eval.json, the avatars with their subject, recipe, initialisation, frame 
 seed-to-seed noise of their test scores."""
 from __future__ import annotations
 
-from pathlib import Path
-
-from avatarlab.evaluate.table import read_json
 from avatarlab.seed_stats import pooled_sd
-from avatarlab.workflow.layout import AvatarKey
+from avatarlab.workflow.layout import ResultsTree
 
 
-def load_runs(results: Path, pattern: str) -> list[dict]:
-    """Every folder matching `pattern` with a train.json and an eval.json: {dir, train, eval}."""
+def load_runs(tree: ResultsTree, stage: str, pattern: str) -> list[dict]:
+    """Every folder of `stage` matching `pattern` with a train.json and an eval.json: {dir, name, train, eval}."""
     runs = []
-    for folder in sorted(p for p in results.glob(pattern) if p.is_dir()):
-        train, ev = read_json(folder / "train.json"), read_json(folder / "eval.json")
+    for folder in (p for p in tree.find(stage, pattern) if p.is_dir()):
+        train, ev = tree.load(folder / "train.json"), tree.load(folder / "eval.json")
         if train is not None and ev is not None:
             runs.append({"dir": folder, "name": folder.name, "train": train, "eval": ev})
     return runs
 
 
-def load_avatars(results: Path) -> list[dict]:
-    """avatars/<subject>/<recipe>/<folder>/ (the folder names the key: workflow/layout.py)."""
-    avatars = load_runs(results, "avatars/*/*/*")
+def load_avatars(tree: ResultsTree) -> list[dict]:
+    """The finished avatars, each with its key (subject, recipe, init, variant, seed: workflow/layout.py)."""
+    avatars = load_runs(tree, "avatars", "*/*/*")
     for a in avatars:
-        key = AvatarKey.parse(a["dir"].parent.parent.name, a["dir"].parent.name, a["dir"].name)
+        key = tree.key(a["dir"]).avatar
         a.update(subject=key.subject, recipe=key.recipe, init=key.init, variant=key.variant, seed=key.seed, key=key)
     return avatars
 

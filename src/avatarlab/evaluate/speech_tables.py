@@ -2,11 +2,10 @@
 and the real clips' mouth-opening timing."""
 from __future__ import annotations
 
-from pathlib import Path
-
 from avatarlab.evaluate.published import PUBLISHED_SPEECH
-from avatarlab.evaluate.table import Table, read_json
+from avatarlab.evaluate.table import Table
 from avatarlab.seed_stats import gain_verdict, signed_range
+from avatarlab.workflow.layout import ResultsTree
 
 REAL_SPEECH_ROWS = {"synthetic": "trained on the synthetic corpus", "adapted_other_clips":
                     "+ fine-tuned on the other real clips (leave one clip out)", "adapted_other_speakers":
@@ -17,16 +16,16 @@ SPEECH_MODELS = {"lstm_reg": "seed 000, with regularisation", "lstm_noreg": "see
                  "window": "seed 001 sliding window (phoneme labels in, as the paper's linguistic indicators)"}
 
 
-def real_speech_rows(results: Path):
+def real_speech_rows(tree: ResultsTree):
     """(method label, speaker, row) of speech/real_eval.json: per model and speaker, as trained, then adapted."""
-    real = read_json(results / "speech" / "real_eval.json")
+    real = tree.load(tree.speech("real_eval.json"))
     for name, model in (real or {}).get("models", {}).items():
         for speaker, by_row in model["speakers"].items():
             for key in [k for k in REAL_SPEECH_ROWS if k in by_row]:
                 yield f"{SPEECH_MODELS.get(name, name)}, {REAL_SPEECH_ROWS[key]}", speaker, by_row[key]
 
 
-def speech_table(results: Path, scale: str) -> Table:
+def speech_table(tree: ResultsTree, scale: str) -> Table:
     table = Table("speech", "Speech-driven animation (seed 000's table; seed 001's window model)",
                   ["source", "method", "data", "latency_ms", "lip_error_iod", "motion_error_iod", "best_baseline",
                    "baseline_iod", "gain_iod", "clip_gain_ci95", "wins", "fine_tuning_seeds", "compute_ms_per_step",
@@ -53,7 +52,7 @@ def speech_table(results: Path, scale: str) -> Table:
     for row in PUBLISHED_SPEECH:
         table.add(source="published", data="GRID", **row)
     for key, label in SPEECH_MODELS.items():
-        run = read_json(results / "speech" / key / "metrics.json")
+        run = tree.load(tree.speech(key, "metrics.json"))
         if run:
             t = run["test"]
             best = t.get("best_baseline")
@@ -63,12 +62,12 @@ def speech_table(results: Path, scale: str) -> Table:
                       baseline_iod=t["baselines"][best] if best else None, gain_iod=t.get("gain_over_best_baseline"),
                       compute_ms_per_step=t.get("compute_ms_per_step"),
                       real_time_factor=t.get("real_time_factor"), train_seconds=run["train_seconds"])
-    window = read_json(results / "speech" / "window" / "metrics.json")
+    window = tree.load(tree.speech("window", "metrics.json"))
     if window and window["test"].get("retargeted_lip_error_percent") is not None:
         table.add(source="this run", method="  seed 001 retargeted to the head model's rig (+-3 sigma poses), "
                   "motion only (identity offset removed)", data=f"synthetic corpus, {scale}",
                   lip_error_iod=window["test"]["retargeted_lip_error_percent"])
-    for method, speaker, r in real_speech_rows(results):
+    for method, speaker, r in real_speech_rows(tree):
         table.add(source="this run", method=method, data=f"{r['clips']} real {speaker} clips",
                   motion_error_iod=r["lip_error_percent"], best_baseline="still_mouth",
                   baseline_iod=r["still_mouth_percent"], gain_iod=r["still_mouth_percent"] - r["lip_error_percent"],
@@ -85,7 +84,7 @@ def seed_spread_text(spread: dict | None) -> str | None:
             f"{spread['beats_still_mouth']} beyond the CI")
 
 
-def speech_timing_table(results: Path) -> Table:
+def speech_timing_table(tree: ResultsTree) -> Table:
     """The real-clip rows again, on the mouth opening's timing alone (speech/real_eval.py `opening_timing`)."""
     table = Table("speech_opening_timing", "Speech on real clips: does the predicted mouth open when the real one does?",
                   ["method", "data", "opening_r", "best_baseline", "baseline_r", "gain_r", "clip_gain_ci95", "wins",
@@ -98,7 +97,7 @@ def speech_timing_table(results: Path) -> Table:
                   "95 % CI half-width over clips; verdict 'better' / 'worse' only beyond that CI.",
                   shown=["method", "data", "opening_r", "best_baseline", "baseline_r", "gain_r", "wins", "verdict"],
                   ci_columns={"gain_r": "clip_gain_ci95"})
-    for method, speaker, r in real_speech_rows(results):
+    for method, speaker, r in real_speech_rows(tree):
         t = r.get("opening_timing")
         if not t:
             continue

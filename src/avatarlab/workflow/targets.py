@@ -1,15 +1,12 @@
-"""Which results a workflow run produces, from workflow/config.yaml (paths relative to the work directory).
+"""Which results a workflow run produces, from workflow/config.yaml (paths relative to the work directory, in the
+results tree of workflow/layout.py).
 
-    results/<scale>/subjects/<subject>/...                 preprocessing (per subject; `portraits` = the image set)
-    results/<scale>/pretrain/<model>/{model.pt,train.json,eval.json}
-    results/<scale>/avatars/<subject>/<recipe>/<init>/{model.pt,train.json,eval.json}
-        recipe: final (every subject's avatar, from the final recipe's model) | base (the ablation fine-tunes:
-        the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>)
+    avatars: recipe final (every subject's avatar, from the final recipe's model) | base (the ablation fine-tunes:
+        the 14 initialisations of `ablation_subjects`; the interpolation variants <init>_frames<b|c>);
         <init>_seed<k>: the same run with seed k (k = 1 .. seeds-1; seed 0 is the plain folder)
-    results/<scale>/pretrain/<final recipe>_<R>px/...    the final recipe continued at resolution R (the scale's
-        `resolution_tiers`), and results/<scale>/avatars/<subject>/final/<final recipe>_<R>px/... from it
-    results/<scale>/apps/<subject>/...   results/<scale>/speech/...   results/<scale>/report/...
-    results/<scale>/sweeps/<sweep>/{table.md,table.csv,figure.png}, <sweep>/<point>/{model.pt,train.json,eval.json}
+    pretrain/<final recipe>_<R>px: the final recipe continued at resolution R (the scale's `resolution_tiers`), and
+        the avatars/<subject>/final/<final recipe>_<R>px avatars from it
+    sweeps/<sweep>/{table.md,table.csv,figure.png}, sweeps/<sweep>/<point>/{model.pt,train.json,eval.json}
 """
 from __future__ import annotations
 
@@ -18,7 +15,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from avatarlab.workflow.layout import VARIANTS, AvatarKey
+from avatarlab.workflow.layout import VARIANTS, AvatarKey, ResultsTree, logs_root, results_root
 from avatarlab.workflow.sweeps import SWEEP_DIR, load_sweeps
 
 SPEECH_MODEL_DIR = Path(__file__).resolve().parents[3] / "conf" / "speech_model"
@@ -103,8 +100,8 @@ class Plan:
     def __init__(self, config: dict, sweep_dir: str | Path | None = None, scale: dict | None = None):
         """`scale`: the composed conf/scale section (resolution tiers and iteration budgets; none without it)."""
         self.scale = config["scale"]
-        self.results = f"results/{self.scale}"
-        self.logs = f"logs/{self.scale}"
+        self.results, self.logs = results_root(self.scale), logs_root(self.scale)
+        self.tree = ResultsTree(self.results)
         self.subjects = available_subjects(config.get("subjects", {}))
         self.real_images = config["real_images"]
         # videos the frame interpolator also learns from, whole (no experiment holds their frames out; nothing else
@@ -154,20 +151,20 @@ class Plan:
 
     # --- subjects -------------------------------------------------------------------------------------------------
     def subject_dir(self, subject: str) -> str:
-        return f"{self.results}/subjects/{subject}"
+        return self.tree.subject(subject)
 
     def subject_inputs(self, subject: str) -> list[str]:
         """Files the frames of a subject come from: its synthetic video, or the user's paths (globs allowed)."""
         spec = self.all_subjects[subject]
         if spec["source"] == "synthetic":
-            return [f"{self.subject_dir(subject)}/input/video.mp4"]
+            return [self.tree.subject(subject, "input", "video.mp4")]
         if spec["source"] == "portraits":
-            return [f"{self.subject_dir(subject)}/input/images"]
+            return [self.tree.subject(subject, "input", "images")]
         return sorted(glob.glob(spec["path"])) or [spec["path"]]
 
     def subject_truth(self, subject: str) -> list[str]:
         """The ground truth of a synthetic subject (an input of every step that reports errors against it)."""
-        return [f"{self.subject_dir(subject)}/input/truth.npz"] if subject in self.synthetic else []
+        return [self.tree.subject(subject, "input", "truth.npz")] if subject in self.synthetic else []
 
     def subject_values(self, subject: str) -> dict:
         """Per-subject settings every preprocessing and avatar step gets (name, folder, truth, the subject's own
@@ -199,11 +196,11 @@ class Plan:
 
     # --- results --------------------------------------------------------------------------------------------------
     def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
-        return AvatarKey(subject, recipe, init).path(self.results)
+        return self.tree.avatar_of(AvatarKey(subject, recipe, init))
 
     def seeded(self, subject: str, recipe: str, init: str) -> list[str]:
         """The eval.json of an avatar's seeded repeats: seed 0 (the plain folder), seed 1, ..."""
-        return [f"{key.path(self.results)}/eval.json" for key in AvatarKey(subject, recipe, init).seeds(self.seeds)]
+        return [self.tree.avatar_of(key, "eval.json") for key in AvatarKey(subject, recipe, init).seeds(self.seeds)]
 
     def final_strategy(self) -> str:
         return self.final_recipe.split("_from_")[0]
@@ -214,19 +211,19 @@ class Plan:
     def final_avatar(self, subject: str) -> str:
         """The avatar the applications use: the final recipe at the highest resolution the scale trains."""
         top = self.tiers[-1].name if self.tiers else self.final_recipe
-        return f"{self.avatar_dir(subject, 'final', top)}/model.pt"
+        return self.tree.avatar(subject, "final", top, "model.pt")
 
     def preprocessing_outputs(self) -> list[str]:
-        outputs = [f"{self.results}/headmodel/render_grid.png", f"{self.results}/headmodel/dlib_check.json"]
+        outputs = [self.tree.headmodel("render_grid.png"), self.tree.headmodel("dlib_check.json")]
         for subject in self.subjects:
-            outputs += [f"{self.subject_dir(subject)}/fit_rgb.json", f"{self.subject_dir(subject)}/interp.json"]
-        outputs += [f"{self.subject_dir(s)}/fit_rgbd.json" for s in self.synthetic]
+            outputs += [self.tree.subject(subject, "fit_rgb.json"), self.tree.subject(subject, "interp.json")]
+        outputs += [self.tree.subject(s, "fit_rgbd.json") for s in self.synthetic]
         return outputs
 
     def pretrain_outputs(self) -> list[str]:
-        return ([f"{self.results}/pretrain/{name}/eval.json" for name in self.initialisations]
-                + [f"{self.results}/report/renderer_experiment.json"]
-                + [f"{self.results}/pretrain/controls/{name}.json" for name in self.control_figures])
+        return ([self.tree.pretrain(name, "eval.json") for name in self.initialisations]
+                + [self.tree.report("renderer_experiment.json")]
+                + [self.tree.controls(f"{name}.json") for name in self.control_figures])
 
     def avatar_outputs(self) -> list[str]:
         """Every subject's final-recipe avatar and its applications; the 14 base fine-tunes of the ablation subjects;
@@ -234,26 +231,25 @@ class Plan:
         outputs = []
         for subject in self.subjects:
             outputs += self.seeded(subject, "final", self.final_recipe)
-            outputs += [f"{self.avatar_dir(subject, 'final', tier.name)}/eval.json" for tier in self.tiers]
-            outputs += [f"{self.results}/apps/{subject}/novel_views.png",
-                        f"{self.results}/apps/{subject}/telepresence.json"]
+            outputs += [self.tree.avatar(subject, "final", tier.name, "eval.json") for tier in self.tiers]
+            outputs += [self.tree.app(subject, "novel_views.png"), self.tree.app(subject, "telepresence.json")]
         for subject in self.ablation_subjects:
-            outputs += [f"{self.avatar_dir(subject, 'base', init)}/eval.json" for init in self.pretrained]
+            outputs += [self.tree.avatar(subject, "base", init, "eval.json") for init in self.pretrained]
             outputs += [path for init in self.alphas for path in self.seeded(subject, "base", init)]
         for subject in self.interp_subjects:
-            outputs += [f"{AvatarKey(subject, 'base', self.final_recipe, v).path(self.results)}/eval.json"
+            outputs += [self.tree.avatar_of(AvatarKey(subject, "base", self.final_recipe, v), "eval.json")
                         for v in VARIANTS]
-        outputs += [f"{self.results}/apps/{a}/reenact_{s}.mp4" for a, s in self.transfers]
+        outputs += [self.tree.app(a, f"reenact_{s}.mp4") for a, s in self.transfers]
         return sorted(set(outputs))
 
     def speech_outputs(self) -> list[str]:
-        outputs = [f"{self.results}/speech/{m}/metrics.json" for m in self.speech_models]
-        outputs += [f"{self.results}/speech/real_eval.json"] if self.real_speech_clips else []
-        return outputs + [f"{self.results}/speech/speak_{s}.mp4" for s in self.speech_subjects]
+        outputs = [self.tree.speech(m, "metrics.json") for m in self.speech_models]
+        outputs += [self.tree.speech("real_eval.json")] if self.real_speech_clips else []
+        return outputs + [self.tree.speech(f"speak_{s}.mp4") for s in self.speech_subjects]
 
     # --- sweeps ----------------------------------------------------------------------------------------------------
     def sweep_dir(self, name: str) -> str:
-        return f"{self.results}/sweeps/{name}"
+        return self.tree.sweep(name)
 
     def sweep_point(self, name: str, point: str):
         for p in self.sweeps[name].points:
@@ -262,10 +258,10 @@ class Plan:
         raise ValueError(f"sweep {name}: no point {point}")
 
     def sweep_point_evals(self, name: str) -> list[str]:
-        return [f"{self.sweep_dir(name)}/{p.name}/eval.json" for p in self.sweeps[name].points]
+        return [self.tree.sweep(name, p.name, "eval.json") for p in self.sweeps[name].points]
 
     def sweep_outputs(self, name: str) -> list[str]:
-        return [f"{self.sweep_dir(name)}/table.md", f"{self.sweep_dir(name)}/figure.png"]
+        return [self.tree.sweep(name, "table.md"), self.tree.sweep(name, "figure.png")]
 
     def made_from(self, outputs: list[str]) -> list[str]:
         """The files the requested results are made from that a step could lose (a failed or killed step's outputs
@@ -275,19 +271,20 @@ class Plan:
         made = []
         for output in outputs:
             folder, _, name = output.rpartition("/")
-            if name == "eval.json" and ("/pretrain/" in output or "/avatars/" in output):
+            stage = self.tree.key(output).stage
+            if name == "eval.json" and stage in ("pretrain", "avatars"):
                 made += [f"{folder}/model.pt", f"{folder}/train.json"]
-            elif name == "metrics.json" and "/speech/" in output:
-                made += [f"{folder}/model.pt", f"{self.results}/speech/corpus.npz"]
+            elif name == "metrics.json" and stage == "speech":
+                made += [f"{folder}/model.pt", self.tree.speech("corpus.npz")]
         for subject in [*self.subjects, self.real_images["name"]]:
-            made += [f"{self.subject_dir(subject)}/{f}" for f in ("frames.json", "landmarks.npz", "masks.npz",
-                                                                  "fit_rgb.npz")]
-        made += [f"{self.subject_dir(s)}/frames.json" for s in self.motion_videos]
-        made += [f"{self.results}/interp/model.pt"] if self.subjects else []
+            made += [self.tree.subject(subject, f) for f in ("frames.json", "landmarks.npz", "masks.npz",
+                                                             "fit_rgb.npz")]
+        made += [self.tree.subject(s, "frames.json") for s in self.motion_videos]
+        made += [self.tree.interp("model.pt")] if self.subjects else []
         return sorted(set(made) - set(outputs))
 
     def final_outputs(self) -> list[str]:
         results = (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
                    + self.speech_outputs())
-        return (results + self.made_from(results) + [f"{self.results}/report/README.md"]
+        return (results + self.made_from(results) + [self.tree.report("README.md")]
                 + [o for name in self.requested_sweeps for o in self.sweep_outputs(name)])
