@@ -11,9 +11,12 @@ rule report_inputs:
         PLAN.speech_outputs(),
     output:
         planned=TREE.report("planned.json"),
+    log:
+        LOG_TREE.report("report_inputs.log"),
     localrule: True
     run:
         write_planned(output.planned, input, TREE.root)
+        Path(log[0]).write_text(f"{len(input)} planned result files -> {output.planned}\n")
 
 
 rule report_tables:
