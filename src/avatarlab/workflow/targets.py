@@ -217,6 +217,7 @@ class Plan:
         outputs = [self.tree.headmodel("render_grid.png"), self.tree.headmodel("dlib_check.json")]
         for subject in self.subjects:
             outputs += [self.tree.subject(subject, "fit_rgb.json"), self.tree.subject(subject, "interp.json")]
+        outputs.append(self.tree.subject(self.real_images["name"], "fit_rgb.json"))  # the pretraining image set
         outputs += [self.tree.subject(s, "fit_rgbd.json") for s in self.synthetic]
         return outputs
 
