@@ -162,6 +162,27 @@ def test_optional_subject_without_files_is_skipped_with_a_note(capsys):
     assert "gone" not in plan.subjects and "optional subject 'gone' skipped" in capsys.readouterr().err
 
 
+def test_the_plans_rule_values():
+    """What helpers.smk hands the rules comes from the Plan: inputs, config choices, audio and sweep tags."""
+    from avatarlab.workflow.layout import AvatarKey
+
+    config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
+    config.update(scale="smoke", subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
+    plan = Plan(config, sweep_dir=REPO / "conf" / "sweep")
+    c, a2 = AvatarKey("synth_talk", "base", "alpha1", "c"), AvatarKey("synth_talk", "final", "alpha2", seed=2)
+    assert plan.interpolated_input(c) == ["results/smoke/subjects/synth_talk/interpolated.npz"]
+    assert plan.interpolated_input(a2) == []
+    assert plan.finetune_choices(a2) == ("finetune=final", "seed=2") and plan.finetune_choices(c) == ("finetune=base",)
+    assert plan.real_set()["fit"] == "results/smoke/subjects/portraits/fit_rgb.npz"
+    assert plan.speech_audio() == {"speech.say": config["speech_text"]}
+    assert Plan({**config, "speech_wav": "me.wav"}).speech_audio() == {"speech.wav": "me.wav"}
+    assert "finetune_ema" in plan.sweep_names("finetune") and "finetune_ema" not in plan.sweep_names("pretrain")
+    assert plan.sweep_avatar("finetune_ema") == AvatarKey("synth_turns", "final", "beta6_from_alpha2")
+    point = plan.sweeps["finetune_ema"].points[0]
+    tags = plan.sweep_tags("finetune_ema", point.name)
+    assert tags["tracking.point"] == point.name and tags["tracking.point_overrides"] == " ".join(point.overrides)
+
+
 def test_common_smk_only_wires(tmp_path):
     text = (REPO / "workflow" / "rules" / "common.smk").read_text()
     assert "import re" not in text and "ast." not in text, "no source scanning in the Snakefile"

@@ -1,4 +1,5 @@
-# Helpers the rule files share or use to build their params (Snakemake's lint keeps functions out of rule files).
+# Helpers the rule files share or use to build their params (Snakemake's lint keeps functions out of rule files):
+# wiring only; what they decide is the Plan's (src/avatarlab/workflow/targets.py, tested in test_workflow_module).
 # (preprocess.smk)
 def subject_step(module, name, **values):
     """The params of a per-subject preprocessing step: the subject's own values plus the rule's (a value may be a
@@ -12,9 +13,7 @@ def subject_step(module, name, **values):
 # (pretrain.smk)
 def real_set(name=None):
     """The preprocessed real image set that pretraining reads."""
-    name = name or PLAN.real_images["name"]
-    return {"fit": TREE.subject(name, "fit_rgb.npz"), "masks": TREE.subject(name, "masks.npz"),
-            "frames": TREE.subject(name, "frames.json")}
+    return PLAN.real_set(name)
 
 
 # (pretrain.smk)
@@ -37,13 +36,13 @@ def avatar_key(wc):
 # (avatar.smk)
 def interpolated_input(key):
     """Variant (c) trains on the interpolated frames too."""
-    return [TREE.subject(key.subject, "interpolated.npz")] if key.variant == "c" else []
+    return PLAN.interpolated_input(key)
 
 
 # (avatar.smk)
 def finetune_choices(key):
     """The config-group choices of a fine-tuning: its recipe and, for seed k > 0, the seed."""
-    return (f"finetune={key.recipe}",) + ((f"seed={key.seed}",) if key.seed else ())
+    return PLAN.finetune_choices(key)
 
 
 # (avatar.smk)
@@ -58,9 +57,7 @@ def app_step(module, name, **values):
 # (speech.smk)
 def speech_audio():
     """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
-    if config.get("speech_wav"):
-        return {"speech.wav": config["speech_wav"]}
-    return {"speech.say": config.get("speech_text", "bin blue at f two now")}
+    return PLAN.speech_audio()
 
 
 # (pretrain.smk)
@@ -72,18 +69,16 @@ def control_figure_names():
 # (sweeps.smk)
 def sweep_names(step):
     """A wildcard constraint: the sweeps of one kind of step."""
-    return alternation(n for n, s in PLAN.sweeps.items() if s.step == step)
+    return alternation(PLAN.sweep_names(step))
 
 
 # (sweeps.smk)
 def sweep_avatar(wc):
     """The avatar a fine-tuning sweep's points vary (its subject, recipe and initialisation)."""
-    sweep = PLAN.sweeps[wc.sweep]
-    return AvatarKey(sweep.subject, sweep.recipe, sweep.init)
+    return PLAN.sweep_avatar(wc.sweep)
 
 
 # (sweeps.smk)
 def sweep_tags(wc):
     """The MLflow tags of a sweep's point (values, not settings: a new tag reruns nothing)."""
-    point = PLAN.sweep_point(wc.sweep, wc.point)
-    return {"tracking.sweep": wc.sweep, "tracking.point": wc.point, "tracking.point_overrides": " ".join(point.overrides)}
+    return PLAN.sweep_tags(wc.sweep, wc.point)

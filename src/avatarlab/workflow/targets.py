@@ -138,6 +138,7 @@ class Plan:
                           if t["avatar"] in self.subjects and t["source"] in self.subjects]
         self.speech_models = sorted(p.stem for p in SPEECH_MODEL_DIR.glob("*.yaml"))
         self.speech_subjects = [s for s in config.get("speech_subjects", []) if s in self.subjects]
+        self.speech_wav, self.speech_text = config.get("speech_wav"), config.get("speech_text", "bin blue at f two now")
         self.real_speech_clips = sorted({c for pattern in config.get("real_speech_clips") or []
                                          for c in glob.glob(pattern)})
         self.speech_audio_models = [m for m in self.speech_models if speech_model_kind(m) == "lstm"]  # audio in
@@ -183,6 +184,12 @@ class Plan:
                 values[target] = kind(spec[key])
         return values
 
+    def real_set(self, name: str | None = None) -> dict:
+        """The preprocessed image set pretraining reads (default: `real_images`): its fit, masks and frames."""
+        name = name or self.real_images["name"]
+        return {"fit": self.tree.subject(name, "fit_rgb.npz"), "masks": self.tree.subject(name, "masks.npz"),
+                "frames": self.tree.subject(name, "frames.json")}
+
     def test_clips(self, subject: str) -> int:
         return int(self.all_subjects[subject].get("test_clips", 0))
 
@@ -193,6 +200,19 @@ class Plan:
                 "finetune.subject_dir": self.subject_dir(key.subject), "finetune.init_name": key.init,
                 "finetune.test_clips": self.test_clips(key.subject), "finetune.frames_variant": key.variant,
                 "finetune.out_dir": str(Path(model).parent)}
+
+    def interpolated_input(self, key: AvatarKey) -> list[str]:
+        """What a fine-tuning reads beyond its subject's data: variant (c) trains on the interpolated frames too."""
+        return [self.tree.subject(key.subject, "interpolated.npz")] if key.variant == "c" else []
+
+    @staticmethod
+    def finetune_choices(key: AvatarKey) -> tuple[str, ...]:
+        """The config-group choices of a fine-tuning: its recipe and, for seed k > 0, the seed."""
+        return (f"finetune={key.recipe}",) + ((f"seed={key.seed}",) if key.seed else ())
+
+    def speech_audio(self) -> dict:
+        """The audio the speech step animates: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
+        return {"speech.wav": self.speech_wav} if self.speech_wav else {"speech.say": self.speech_text}
 
     # --- results --------------------------------------------------------------------------------------------------
     def avatar_dir(self, subject: str, recipe: str, init: str) -> str:
@@ -257,6 +277,20 @@ class Plan:
             if p.name == point:
                 return p
         raise ValueError(f"sweep {name}: no point {point}")
+
+    def sweep_names(self, step: str) -> list[str]:
+        """The sweeps of one kind of step (finetune, pretrain)."""
+        return [n for n, s in self.sweeps.items() if s.step == step]
+
+    def sweep_avatar(self, name: str) -> AvatarKey:
+        """The avatar a fine-tuning sweep's points vary (its subject, recipe and initialisation)."""
+        sweep = self.sweeps[name]
+        return AvatarKey(sweep.subject, sweep.recipe, sweep.init)
+
+    def sweep_tags(self, name: str, point: str) -> dict:
+        """The MLflow tags of a sweep's point (values, not settings: a new tag reruns nothing)."""
+        return {"tracking.sweep": name, "tracking.point": point,
+                "tracking.point_overrides": " ".join(self.sweep_point(name, point).overrides)}
 
     def sweep_point_evals(self, name: str) -> list[str]:
         return [self.tree.sweep(name, p.name, "eval.json") for p in self.sweeps[name].points]
