@@ -1,5 +1,5 @@
-# Helpers the rule files share or use to build their params (Snakemake's lint keeps functions out of rule files):
-# wiring only; what they decide is the Plan's (src/avatarlab/workflow/targets.py, tested in test_workflow_module).
+# Helpers the rule files share or use to build their params (Snakemake's lint keeps functions out of rule files).
+# Wiring only; what they decide is the Plan's (src/avatarlab/workflow/targets.py, tested in test_workflow_module).
 # (preprocess.smk)
 def subject_step(module, name, **values):
     """The params of a per-subject preprocessing step: the subject's own values plus the rule's (a value may be a
