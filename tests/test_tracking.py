@@ -163,3 +163,33 @@ def test_evaluation_metrics_reach_the_dashboard_rounded(store):
     metrics = client(results).get_run(run_id).data.metrics
     assert metrics["test_psnr"] == 24.1235 and metrics["test_ssim"] == 0.8531
     assert metrics["test_gain_psnr"] == 1.2346 and metrics["test_baseline_nearest_psnr"] == 22.8889
+
+
+def test_an_evaluation_logs_into_a_finished_run_without_reopening_it(store, monkeypatch):
+    """The evaluation writes into the finished run of the model it scored. A step starting meanwhile closes runs left
+    RUNNING by a dead process; the scored run must never look like one (it did, when the evaluation reopened it
+    under its training process's pid: smoke run of 2026-12-06, a pretrained model's run marked KILLED)."""
+    import mlflow
+
+    from avatarlab import tracking
+    from avatarlab.tracking import log_to_run, mark_dead_runs_killed, start_run
+
+    results, cfg = store
+    with start_run(cfg, "pretrain", "beta5_from_alpha1") as run:
+        run_id = run.info.run_id
+    mlflow.tracking.MlflowClient().set_tag(run_id, "pid", "999999999")  # its training process is gone
+    seen = []
+    real = mlflow.tracking.MlflowClient.log_batch
+
+    def another_step_starts(self, *args, **kwargs):  # while the evaluation writes, another step starts
+        seen.append(self.get_run(run_id).info.status)
+        mark_dead_runs_killed(results, [run.info.experiment_id])
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(mlflow.tracking.MlflowClient, "log_batch", another_step_starts)
+    gains = {"psnr": {"gain": 0.5, "best_baseline": "nearest", "beats": True}}
+    log_to_run(cfg, run_id, {"psnr": 20.0}, {"nearest": {"psnr": 19.5}}, gains)
+    after = client(results).get_run(run_id)
+    assert seen == ["FINISHED"] and after.info.status == "FINISHED"
+    assert after.data.metrics["test_psnr"] == 20.0 and after.data.tags["test_beats_baselines"] == "True"
+    assert tracking.DASHBOARD_DECIMALS == 4

@@ -16,6 +16,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from avatarlab.errors import InputFileError
@@ -240,14 +241,18 @@ def log_to_run(cfg, run_id: str | None, model: dict, baselines: dict, gains: dic
         metrics[f"{prefix}_gain_{metric}"] = g["gain"]
     metrics.update({k: v for k, v in (extra or {}).items() if _number(v)})
     metrics = {k: round(float(v), DASHBOARD_DECIMALS) for k, v in metrics.items()}
+    tags = {f"{prefix}_best_baseline": gains.get("psnr", {}).get("best_baseline", ""),
+            f"{prefix}_beats_baselines": str(all(g["beats"] for k, g in gains.items() if k in ("psnr", "psnr_head")))}
+    # through the client, leaving the finished run's status alone: reopening it (start_run) would make it RUNNING
+    # under its training process's pid, which is gone, and a step starting meanwhile would mark it KILLED
+    from mlflow.entities import Metric, RunTag
+
     try:
-        with mlflow.start_run(run_id=run_id):
-            mlflow.log_metrics(metrics)
-            mlflow.set_tags({f"{prefix}_best_baseline": gains.get("psnr", {}).get("best_baseline", ""),
-                             f"{prefix}_beats_baselines": str(all(g["beats"] for k, g in gains.items()
-                                                                  if k in ("psnr", "psnr_head")))})
-            if artifact is not None and Path(artifact).is_file():
-                mlflow.log_artifact(str(artifact))
+        client, now = mlflow.tracking.MlflowClient(), int(time.time() * 1000)
+        client.log_batch(run_id, metrics=[Metric(k, v, now, 0) for k, v in metrics.items()],
+                         tags=[RunTag(k, v) for k, v in tags.items()])
+        if artifact is not None and Path(artifact).is_file():
+            client.log_artifact(run_id, str(artifact))
     except Exception as err:  # the model's run is gone (deleted store): the numbers are in eval.json anyway
         log.warning("MLflow run %s not updated: %s", run_id, err)
 
@@ -256,8 +261,6 @@ def log_history(run, entries: list[dict], keys=("loss", "mse", "perceptual", "ps
     """Per-iteration training numbers into the active run (each entry once: the loop hands over each segment)."""
     if run is None or not entries:
         return
-    import time
-
     import mlflow
     from mlflow.entities import Metric
 
