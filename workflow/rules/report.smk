@@ -2,29 +2,22 @@
 
 
 # The report reads the results this configuration plans, never a folder left over from an older one: this rule
-# hands it the list.
+# hands it the list (a param: it is rewritten when the plan changes, not when a result does).
 rule report_inputs:
-    input:
-        PLAN.preprocessing_outputs(),
-        PLAN.pretrain_outputs(),
-        PLAN.avatar_outputs(),
-        PLAN.speech_outputs(),
     output:
         planned=TREE.report("planned.json"),
+    params:
+        files=PLAN.report_inputs(),
     log:
         LOG_TREE.report("report_inputs.log"),
     localrule: True
     run:
-        write_planned(output.planned, input, TREE.root)
-        Path(log[0]).write_text(f"{len(input)} planned result files -> {output.planned}\n")
+        write_planned(output.planned, params.files, TREE.root, log=log[0])
 
 
 rule report_tables:
     input:
-        PLAN.preprocessing_outputs(),
-        PLAN.pretrain_outputs(),
-        PLAN.avatar_outputs(),
-        PLAN.speech_outputs(),
+        PLAN.report_inputs(),
         planned=TREE.report("planned.json"),
     output:
         index=report(TREE.report("README.md"), caption="../report/report.rst", category="Report"),

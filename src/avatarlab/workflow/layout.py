@@ -217,12 +217,14 @@ class ResultsTree:
         return files, frozenset(os.path.dirname(f) for f in files)
 
 
-def write_planned(path: str | Path, files, root: str | Path) -> None:
+def write_planned(path: str | Path, files, root: str | Path, log: str | Path | None = None) -> None:
     """The result files a report is to read, relative to the tree's `root` (so the tree may move), as a sorted JSON
-    list, atomically: a killed write leaves no half list."""
+    list, atomically: a killed write leaves no half list. `log`: a one-line account."""
     names = sorted({PurePosixPath(os.path.relpath(f, root)).as_posix() for f in files})
     with atomic_path(Path(path)) as tmp:
         tmp.write_text(json.dumps(names, indent=0) + "\n")
+    if log is not None:
+        Path(log).write_text(f"{len(names)} planned result files -> {path}\n")
 
 
 def read_planned(path: str | Path | None) -> frozenset | None:

@@ -298,6 +298,10 @@ class Plan:
     def sweep_outputs(self, name: str) -> list[str]:
         return [self.tree.sweep(name, "table.md"), self.tree.sweep(name, "figure.png")]
 
+    def report_inputs(self) -> list[str]:
+        """The results the report reads: preprocessing, pretraining, avatars and speech."""
+        return self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs() + self.speech_outputs()
+
     def made_from(self, outputs: list[str]) -> list[str]:
         """The files the requested results are made from that a step could lose (a failed or killed step's outputs
         are deleted): trained models and the preprocessed data. Requested too, so that a missing one is made again
@@ -319,7 +323,6 @@ class Plan:
         return sorted(set(made) - set(outputs))
 
     def final_outputs(self) -> list[str]:
-        results = (self.preprocessing_outputs() + self.pretrain_outputs() + self.avatar_outputs()
-                   + self.speech_outputs())
+        results = self.report_inputs()
         return (results + self.made_from(results) + [self.tree.report("README.md")]
                 + [o for name in self.requested_sweeps for o in self.sweep_outputs(name)])
