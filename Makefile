@@ -57,8 +57,10 @@ main: setup system
 	  echo "HTML report: results/$(SCALE)/report/workflow_report.html (its log: logs/workflow_report.log)" || \
 	  { tail -20 logs/workflow_report.log; exit 1; }
 
+# two pytest workers (one core each, a test file at a time): the workflow's end-to-end file runs beside the rest
+TEST_WORKERS ?= 2
 test: setup system browser cluster lint
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # the unit tests only (about a minute): what to run after each edit
 test-fast: setup

@@ -11,7 +11,20 @@ import torch
 
 from avatarlab.headmodel import HeadModel, ProceduralSpec, load_procedural_head
 
-torch.set_num_threads(2)
+# `make test` runs the suite in two workers (pytest-xdist, one file per worker at a time): each takes one core, so
+# that no OpenMP pool of one worker spins on the core the other needs; a plain `pytest` run takes both.
+WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+torch.set_num_threads(1 if WORKER else 2)
+
+
+#: the longest files first: with two workers (`make test`) one takes the whole workflow run while the other works
+#: through the rest, instead of the workflow file starting last
+FIRST = ("test_workflow.py", "test_cluster.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(FIRST)))  # stable: each file keeps its own order
 
 
 @pytest.fixture(scope="session")
@@ -34,6 +47,9 @@ def snakemake_bin():
 
 def pytest_sessionfinish(session, exitstatus):
     """The workflow tests' steps started a fork server (src/avatarlab/forkserver.py): end it with the suite rather
-    than after its idle time. Servers of edited repository copies (their own import path) end on their idle time."""
+    than after its idle time. Servers of edited repository copies (their own import path) end on their idle time.
+    With workers, the controller does it once every worker is done."""
+    if WORKER:
+        return
     subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "--stop"], capture_output=True, timeout=60,
                    cwd=session.config.rootpath)
