@@ -300,7 +300,9 @@ def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, 
     net, resumed, report = pretrain.pretrain_model(cfg, torch.device("cpu"))
     for p, q in zip(full_net.parameters(), net.parameters()):
         torch.testing.assert_close(p, q)
-    assert [h["loss"] for h in resumed.history] == [h["loss"] for h in full.history]
+    # the same trajectory; float32 kernels may differ in the last bits between two runs in one busy process (seen
+    # once under pytest-xdist, at step 4, before the kill: 7.3775081e-3 against 7.3775076e-3)
+    assert [h["loss"] for h in resumed.history] == pytest.approx([h["loss"] for h in full.history], rel=1e-6, abs=0)
     assert report["iterations"] == 9 and resumed.seconds > saved["seconds"], "time adds up across resumes"
     assert report["samples_per_second"] == pytest.approx(9 * 2 / resumed.seconds)
 
@@ -317,7 +319,7 @@ def test_a_checkpoint_of_other_work_is_not_resumed(tmp_path):
     assert Checkpoint(stale.path, "another fingerprint").load() is None
     _, again, report = short_training(tmp_path, "run")
     assert report["iterations"] == 9 and again.history[0]["step"] == 1, "trained from iteration 0, not resumed"
-    assert [h["loss"] for h in again.history] == [h["loss"] for h in first.history]
+    assert [h["loss"] for h in again.history] == pytest.approx([h["loss"] for h in first.history], rel=1e-6, abs=0)
     _, other_lr, _ = short_training(tmp_path, "run", "pretrain.lr=0.01")
     assert other_lr.history[-1]["loss"] != first.history[-1]["loss"]
 
