@@ -95,13 +95,12 @@ def logs_root(scale: str) -> str:
     return f"logs/{scale}"
 
 
-#: the stage folders under results/<scale>/, in pipeline order
-STAGES = ("subjects", "headmodel", "pretrain", "interp", "avatars", "apps", "speech", "sweeps", "report")
-#: how many folder levels below its stage folder name one result (the rest are file names or sub-folders)
-_KEY_DEPTH = {"subjects": 1, "headmodel": 0, "pretrain": 1, "interp": 0, "avatars": 3, "apps": 1, "speech": 0,
-              "sweeps": 1, "report": 0}
-_KEY_NAMES = {"subjects": ("subject",), "pretrain": ("model",), "avatars": ("subject", "recipe", "folder"),
-              "apps": ("subject",), "sweeps": ("sweep",)}
+#: the stage folders under results/<scale>/, in pipeline order, each with the keys its folder levels name (the
+#: levels below them are file names or sub-folders)
+_KEY_NAMES = {"subjects": ("subject",), "headmodel": (), "pretrain": ("model",), "interp": (),
+              "avatars": ("subject", "recipe", "folder"), "apps": ("subject",), "speech": (), "sweeps": ("sweep",),
+              "report": ()}
+STAGES = tuple(_KEY_NAMES)
 
 
 @dataclass(frozen=True)
@@ -181,10 +180,11 @@ class ResultsTree:
             raise ValueError(f"{path}: not under the results tree {self.root}") from None
         if not parts or parts[0] not in STAGES:
             raise ValueError(f"{path}: not in a stage folder of {self.root} ({', '.join(STAGES)})")
-        stage, depth = parts[0], _KEY_DEPTH[parts[0]]
+        stage, names = parts[0], _KEY_NAMES[parts[0]]
+        depth = len(names)
         if len(parts) < 1 + depth:
             raise ValueError(f"{path}: a {stage} path needs {depth} folder level(s) below {stage}/")
-        keys = dict(zip(_KEY_NAMES.get(stage, ()), parts[1:1 + depth]))
+        keys = dict(zip(names, parts[1:1 + depth]))
         result = ResultKey(stage, keys, parts[1 + depth:])
         result.avatar  # a malformed avatar folder name fails here
         return result
@@ -193,7 +193,7 @@ class ResultsTree:
     def find(self, stage: str, pattern: str) -> list[Path]:
         """Sorted existing paths matching `pattern` below a stage folder (e.g. find("apps", "*/telepresence.json");
         stage "controls": pretrain/controls), the planned ones only when the tree has a plan."""
-        base = Path(self.root, *(("pretrain", "controls") if stage == "controls" else (stage,)))
+        base = Path(self.controls() if stage == "controls" else self._at(stage))
         return [p for p in sorted(base.glob(pattern)) if self.in_plan(p)]
 
     def in_plan(self, path) -> bool:
