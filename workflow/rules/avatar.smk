@@ -10,7 +10,7 @@ rule finetune_avatar:
     input:
         fit=TREE.subject("{subject}", "fit_rgb.npz"),
         masks=TREE.subject("{subject}", "masks.npz"),
-        interpolated=lambda wc: interpolated_input(avatar_key(wc)),
+        interpolated=lambda wc: PLAN.interpolated_input(avatar_key(wc)),
         model=lambda wc: TREE.pretrain(avatar_key(wc).init, "model.pt"),
         tracking=TRACKING_READY,
     output:
@@ -20,7 +20,7 @@ rule finetune_avatar:
         LOG_TREE.avatar("{subject}", "{recipe}", "{avatar}.log"),
     params:
         **step_params(
-            "avatarlab.train.finetune", extra=lambda wc: finetune_choices(avatar_key(wc)),
+            "avatarlab.train.finetune", extra=lambda wc: PLAN.finetune_choices(avatar_key(wc)),
             values=lambda wc, input, output: {**PLAN.finetune_values(avatar_key(wc), output.model),
                                               "finetune.init_model": input.model,
                                               **({"finetune.interpolated": input.interpolated[0]}
@@ -43,7 +43,7 @@ rule evaluate_avatar:
         fit=TREE.subject("{subject}", "fit_rgb.npz"),
         masks=TREE.subject("{subject}", "masks.npz"),
         landmarks=TREE.subject("{subject}", "landmarks.npz"),
-        interpolated=lambda wc: interpolated_input(avatar_key(wc)),
+        interpolated=lambda wc: PLAN.interpolated_input(avatar_key(wc)),
         tracking=TRACKING_READY,
     output:
         report=TREE.avatar("{subject}", "{recipe}", "{avatar}", "eval.json"),

@@ -9,9 +9,8 @@ sys.path.insert(0, str(REPO / "src"))
 from snakemake.utils import validate  # noqa: E402
 
 from avatarlab.workflow.steps import Steps, chosen_scale, interpreter_first_on_path  # noqa: E402
-from avatarlab.workflow import layout  # noqa: E402
 from avatarlab.workflow.layout import (  # noqa: E402
-    AvatarKey, ResultsTree, alternation, avatar_folder_pattern, write_planned)
+    TRACKING_LOG, TRACKING_READY, AvatarKey, ResultsTree, alternation, avatar_folder_pattern, write_planned)
 from avatarlab.workflow.targets import Plan  # noqa: E402
 
 interpreter_first_on_path()  # `.venv/bin/snakemake` works without an activated venv
@@ -24,7 +23,6 @@ TREE, LOG_TREE = PLAN.tree, ResultsTree(PLAN.logs)  # every path of the results 
 LANDING = Path(TREE.report("landing.html"))  # the results card's tables: the HTML report's front page
 if LANDING.is_file():
     config["report_landing"] = str(LANDING.resolve())
-TRACKING_READY = layout.TRACKING_READY
 # per kind of step (light, fit, train, finetune, speech): cpus (= threads locally), mem_mb, runtime, gpu; a cluster
 # executor (profiles/slurm) turns them into each job's request. `threads_per_job` overrides the cpus locally.
 STEP_RESOURCES = SCALE.resources

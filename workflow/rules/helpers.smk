@@ -11,12 +11,6 @@ def subject_step(module, name, **values):
 
 
 # (pretrain.smk)
-def real_set(name=None):
-    """The preprocessed real image set that pretraining reads."""
-    return PLAN.real_set(name)
-
-
-# (pretrain.smk)
 def pretrain_step(name, strategy, extra, **values):
     """The params of a pretraining run: name(wc) and strategy(wc) choose the model, extra(wc) more config choices."""
     def fixed(wc, input, output):
@@ -34,30 +28,12 @@ def avatar_key(wc):
 
 
 # (avatar.smk)
-def interpolated_input(key):
-    """Variant (c) trains on the interpolated frames too."""
-    return PLAN.interpolated_input(key)
-
-
-# (avatar.smk)
-def finetune_choices(key):
-    """The config-group choices of a fine-tuning: its recipe and, for seed k > 0, the seed."""
-    return PLAN.finetune_choices(key)
-
-
-# (avatar.smk)
 def app_step(module, name, **values):
     """The params of an application of a subject's final avatar (a value may be a function of wc, input, output)."""
     return step_params(module, values=lambda wc, input, output: {
         **PLAN.subject_values(wc.subject), "apps.avatar": input.avatar, "apps.subject_dir": PLAN.subject_dir(wc.subject),
         **{k: v(wc, input, output) for k, v in values.items()}},
         run_dir=lambda wc: TREE.app(wc.subject, ".hydra", name))
-
-
-# (speech.smk)
-def speech_audio():
-    """The audio to animate: `speech_wav` (a path) if set, else `speech_text` spoken by espeak-ng."""
-    return PLAN.speech_audio()
 
 
 # (pretrain.smk)
@@ -70,15 +46,3 @@ def control_figure_names():
 def sweep_names(step):
     """A wildcard constraint: the sweeps of one kind of step."""
     return alternation(PLAN.sweep_names(step))
-
-
-# (sweeps.smk)
-def sweep_avatar(wc):
-    """The avatar a fine-tuning sweep's points vary (its subject, recipe and initialisation)."""
-    return PLAN.sweep_avatar(wc.sweep)
-
-
-# (sweeps.smk)
-def sweep_tags(wc):
-    """The MLflow tags of a sweep's point (values, not settings: a new tag reruns nothing)."""
-    return PLAN.sweep_tags(wc.sweep, wc.point)

@@ -6,7 +6,7 @@ rule init_tracking:
     output:
         TRACKING_READY,
     log:
-        layout.TRACKING_LOG,
+        TRACKING_LOG,
     conda:
         "../envs/avatarlab.yaml"
     shell:
@@ -34,7 +34,7 @@ rule synthesize_portraits:
 
 rule pretrain_alpha:
     input:
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
     output:
         model=TREE.pretrain("{alpha}", "model.pt"),
@@ -54,7 +54,7 @@ rule pretrain_alpha:
 
 rule pretrain_beta:
     input:
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
         parent=TREE.pretrain("{alpha}", "model.pt"),
     output:
@@ -79,7 +79,7 @@ rule pretrain_resolution:
     the 14 models and the ablations at 128x128, the chosen recipe then at 256x256 and 512x512): the previous tier's
     weights at the new image and feature-map size, the final recipe's strategy from the parent's last iteration."""
     input:
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
         parent=lambda wc: TREE.pretrain(PLAN.tier(wc.tier).parent, "model.pt"),
     output:
@@ -102,7 +102,7 @@ rule pretrain_resolution:
 
 rule renderer_run:
     input:
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
     output:
         model=TREE.pretrain("renderer_{renderer}", "model.pt"),
@@ -126,7 +126,7 @@ rule evaluate_pretrained:
     training sample); its own step, so a new metric re-scores without retraining."""
     input:
         model=TREE.pretrain("{model}", "model.pt"),
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
     output:
         report=TREE.pretrain("{model}", "eval.json"),

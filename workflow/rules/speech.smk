@@ -57,10 +57,10 @@ rule speak:
         LOG_TREE.speech("speak_{subject}.log"),
     params:
         **step_params("avatarlab.speech.animate", values=lambda wc, input, output: {
-            **PLAN.subject_values(wc.subject), "apps.subject_dir": PLAN.subject_dir(wc.subject), **speech_audio(),
+            **PLAN.subject_values(wc.subject), "apps.subject_dir": PLAN.subject_dir(wc.subject), **PLAN.speech_audio(),
             "speech.animate_model": input.speech, "apps.avatar": input.avatar, "apps.out": output.video},
             run_dir=lambda wc: TREE.speech(".hydra", f"speak_{wc.subject}")),
-        audio=lambda wc: speech_audio(),
+        audio=lambda wc: PLAN.speech_audio(),
     threads: step_threads("light")
     resources:
         **step_resources("light"),

@@ -19,8 +19,8 @@ rule sweep_finetune:
         **step_params(
             "avatarlab.train.finetune",
             extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}", *PLAN.sweep_point(wc.sweep, wc.point).overrides),
-            values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), output.model),
-                                              "finetune.init_model": input.model, **sweep_tags(wc)},
+            values=lambda wc, input, output: {**PLAN.finetune_values(PLAN.sweep_avatar(wc.sweep), output.model),
+                                              "finetune.init_model": input.model, **PLAN.sweep_tags(wc.sweep, wc.point)},
             run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra")),
     threads: step_threads("finetune")
     resources:
@@ -50,7 +50,7 @@ rule sweep_evaluate_avatar:
     params:
         **step_params(
             "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}",),
-            values=lambda wc, input, output: {**PLAN.finetune_values(sweep_avatar(wc), input.model),
+            values=lambda wc, input, output: {**PLAN.finetune_values(PLAN.sweep_avatar(wc.sweep), input.model),
                                               "evaluate.model": input.model, "evaluate.out": output.report},
             run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra", "eval")),
     threads: step_threads("light")
@@ -64,7 +64,7 @@ rule sweep_evaluate_avatar:
 
 rule sweep_pretrain:
     input:
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
         parent=lambda wc: ([TREE.pretrain(PLAN.sweeps[wc.sweep].parent, "model.pt")]
                            if PLAN.sweeps[wc.sweep].parent else []),
@@ -82,7 +82,7 @@ rule sweep_pretrain:
             values=lambda wc, input, output: {
                 "pretrain.name": f"{wc.sweep}/{wc.point}", "pretrain.out_dir": str(Path(output.model).parent),
                 "pretrain.real_subject_dir": str(Path(input.fit).parent),
-                **({"pretrain.init_model": input.parent[0]} if input.parent else {}), **sweep_tags(wc)},
+                **({"pretrain.init_model": input.parent[0]} if input.parent else {}), **PLAN.sweep_tags(wc.sweep, wc.point)},
             run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra")),
     threads: step_threads("train")
     resources:
@@ -96,7 +96,7 @@ rule sweep_pretrain:
 rule sweep_evaluate_pretrained:
     input:
         model=TREE.sweep("{sweep}", "{point}", "model.pt"),
-        **real_set(),
+        **PLAN.real_set(),
         tracking=TRACKING_READY,
     output:
         report=TREE.sweep("{sweep}", "{point}", "eval.json"),
