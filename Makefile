@@ -51,7 +51,7 @@ main: setup system
 	@echo "$(SCALE)" > .avatarlab-scale && echo "avatarlab: scale $(SCALE) (remembered in .avatarlab-scale for later make and snakemake calls)"
 	@mkdir -p results && { [ -d results/$(SCALE) ] && state=resumed || state=fresh; echo "$$(date +%s) $$state" > $(START); }
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --logger avatarlab --config scale=$(SCALE)
-	$(BIN)/python -m avatarlab.evaluate.results_card --results results/$(SCALE) --start $(START)
+	$(BIN)/python -m avatarlab.report.results_card --results results/$(SCALE) --start $(START)
 	@mkdir -p logs && PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --cores $(CORES) --config scale=$(SCALE) \
 	  --report results/$(SCALE)/report/workflow_report.html > logs/workflow_report.log 2>&1 && \
 	  echo "HTML report: results/$(SCALE)/report/workflow_report.html (its log: logs/workflow_report.log)" || \
@@ -77,7 +77,7 @@ unlock: setup
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake --unlock --cores 1 --config scale=$(SCALE)
 
 dashboard: setup
-	$(BIN)/python -m avatarlab.dashboard --results results --port $(PORT) --scale $(SCALE)
+	$(BIN)/python -m avatarlab.runtime.dashboard --results results --port $(PORT) --scale $(SCALE)
 
 clean-results:
 	rm -rf results logs

@@ -57,14 +57,14 @@ def sgemm_gflops(size: int = 2048, repeats: int = 10) -> float:
 def training_setup(cfg, batch: int) -> SimpleNamespace:
     """Pretraining's pieces at the config's sizes, with a real image set of neutral fits (the samples are all
     synthetic, as in alpha): `stream` draws batches, `step(batch)` is one iteration of the training loop."""
-    from avatarlab.config import grad_scaler
     from avatarlab.data.batches import BatchSource, BatchStream
     from avatarlab.data.schedule import Schedule
     from avatarlab.data.synthetic import SyntheticGenerator
     from avatarlab.headmodel import load_head_model
     from avatarlab.model.head_nerf import build_model
     from avatarlab.model.losses import RandomConvFeatures
-    from avatarlab.train.loop import MLP_PRECISIONS, Recipe, make_optimizer, offset_table, train_step
+    from avatarlab.runtime.config import grad_scaler
+    from avatarlab.training.loop import MLP_PRECISIONS, Recipe, make_optimizer, offset_table, train_step
 
     head = load_head_model(cfg.head_model)
     n = 8
@@ -94,8 +94,8 @@ def mlp_rate(run, cfg, batch: int, repeats: int) -> tuple[float, float]:
     """GFLOP and GFLOPS of the CNeRF MLP over one training batch's points (forward + backward)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    from avatarlab.config import autocast
     from avatarlab.model.head_nerf import assemble_codes
+    from avatarlab.runtime.config import autocast
 
     fs, samples = int(cfg.model.feature_size), int(cfg.model.samples)
     points = batch * fs * fs * samples

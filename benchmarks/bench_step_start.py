@@ -18,14 +18,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from avatarlab.forkserver import PRELOAD, socket_path
-from avatarlab.tracking import TELEMETRY_OFF
+from avatarlab.runtime.forkserver import PRELOAD, socket_path
+from avatarlab.runtime.tracking import TELEMETRY_OFF
 
 
 def run_step(cwd: Path, forked: bool, index: int) -> float:
     out = cwd / f"grid_{int(forked)}_{index}.png"
-    module = ["-m", "avatarlab.forkserver", "avatarlab.evaluate.head_model_demo"] if forked else \
-        ["-m", "avatarlab.evaluate.head_model_demo"]
+    module = ["-m", "avatarlab.runtime.forkserver", "avatarlab.pretrain.head_model_demo"] if forked else \
+        ["-m", "avatarlab.pretrain.head_model_demo"]
     env = dict(os.environ, AVATARLAB_FORKSERVER="1" if forked else "0", AVATARLAB_FORKSERVER_IDLE="120")
     start = time.perf_counter()
     subprocess.run([sys.executable, *module, "scale=smoke", f"demo.out={out}", f"hydra.run.dir={cwd}/.hydra/{index}",
@@ -50,7 +50,7 @@ def main() -> None:
         while not socket_path().exists() and time.monotonic() < deadline:
             time.sleep(0.2)
         forked = [run_step(cwd, True, i) for i in range(args.repeats)]
-        subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "--stop"], capture_output=True)
+        subprocess.run([sys.executable, "-m", "avatarlab.runtime.forkserver", "--stop"], capture_output=True)
     for name, times in (("plain python -m", plain), ("fork server", forked)):
         spread = statistics.stdev(times) if len(times) > 1 else 0.0
         print(f"{name:16s} {statistics.mean(times):6.2f} s per step (± {spread:.2f}, {len(times)} runs)")

@@ -46,10 +46,10 @@ def snakemake_bin():
 
 
 def pytest_sessionfinish(session, exitstatus):
-    """The workflow tests' steps started a fork server (src/avatarlab/forkserver.py): end it with the suite rather
+    """The workflow tests' steps started a fork server (src/avatarlab/runtime/forkserver.py): end it with the suite rather
     than after its idle time. Servers of edited repository copies (their own import path) end on their idle time.
     With workers, the controller does it once every worker is done."""
     if WORKER:
         return
-    subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "--stop"], capture_output=True, timeout=60,
+    subprocess.run([sys.executable, "-m", "avatarlab.runtime.forkserver", "--stop"], capture_output=True, timeout=60,
                    cwd=session.config.rootpath)

@@ -9,10 +9,8 @@ from helpers.subjects import tiny_model_overrides
 from helpers.training import killed_at_optimizer_step
 
 from avatarlab.data.splits import mouth_open_subset, subject_split
-from avatarlab.entry import InputError
-from avatarlab.evaluate import baselines
-from avatarlab.evaluate.scoring import gains
-from avatarlab.metrics import (
+from avatarlab.metrics import baselines
+from avatarlab.metrics.quality import (
     LPIPS,
     STLPIPS,
     colour_matched,
@@ -25,7 +23,9 @@ from avatarlab.metrics import (
     psnr_in_mask,
     ssim,
 )
-from avatarlab.safe_load import InputFileError
+from avatarlab.metrics.scoring import gains
+from avatarlab.runtime.entry import InputError
+from avatarlab.runtime.safe_load import InputFileError
 
 
 def test_split_keeps_the_last_frames_for_testing():
@@ -213,8 +213,7 @@ def test_gain_over_the_best_baseline_respects_each_metrics_direction():
 @pytest.fixture(scope="module")
 def parent_model(tmp_path_factory):
     """A tiny pretrained model (alpha1 at smoke scale, a very small network)."""
-    from avatarlab.train import pretrain
-
+    from avatarlab.pretrain import train as pretrain
     folder = tmp_path_factory.mktemp("parent")
     fake_real_set(folder / "portraits")
     cfg = step_cfg(pretrain, tiny_model_overrides() + ["model.depth=5", f"pretrain.out_dir={folder / 'alpha1'}",
@@ -224,7 +223,7 @@ def parent_model(tmp_path_factory):
 
 
 def test_weight_average_is_the_exponential_moving_average_and_swaps_back():
-    from avatarlab.train.loop import WeightAverage
+    from avatarlab.training.loop import WeightAverage
 
     net = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))
     with torch.no_grad():
@@ -247,9 +246,8 @@ def test_weight_average_is_the_exponential_moving_average_and_swaps_back():
 
 
 def test_ema_decay_outside_zero_to_one_is_a_config_error():
-    from avatarlab.schema import problems
-    from avatarlab.train import finetune
-
+    from avatarlab.avatar import finetune
+    from avatarlab.runtime.schema import problems
     assert any("finetune.ema_decay: must be below 1" in p
                for p in problems(step_cfg(finetune, ["finetune.ema_decay=1.0"])))
     assert any("finetune.ema_decay: must be at least 0" in p
@@ -259,8 +257,7 @@ def test_ema_decay_outside_zero_to_one_is_a_config_error():
 
 @pytest.mark.slow
 def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, parent_model, monkeypatch):
-    from avatarlab.train import finetune
-
+    from avatarlab.avatar import finetune
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
 
@@ -291,8 +288,7 @@ def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, paren
 
 @pytest.mark.slow
 def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, parent_model):
-    from avatarlab.train import finetune
-
+    from avatarlab.avatar import finetune
     path, parent = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
     cfg = step_cfg(finetune, tiny_model_overrides() + [
@@ -316,9 +312,8 @@ def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, 
 
 @pytest.mark.slow
 def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model):
-    from avatarlab.evaluate import avatar as evaluation
-    from avatarlab.train import finetune
-
+    from avatarlab.avatar import evaluate as evaluation
+    from avatarlab.avatar import finetune
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
     common = tiny_model_overrides() + [f"finetune.subject_dir={subject}", "finetune.test_frames=2",
@@ -344,10 +339,9 @@ def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_pat
 def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp_path, parent_model, monkeypatch):
     """With validation frames, the snapshot scoring best on them becomes the avatar (model.pt holds its weights and
     step), the end of training stays on the quality curve, and the baselines may copy the validation frames."""
-    from avatarlab.evaluate import avatar as evaluation
+    from avatarlab.avatar import evaluate as evaluation
+    from avatarlab.avatar import finetune
     from avatarlab.model.head_nerf import load_model_file
-    from avatarlab.train import finetune
-
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=10)
     out = tmp_path / "avatar"
@@ -388,10 +382,10 @@ def test_betas_from_alpha2_and_their_avatars_keep_the_mouth_interior(tmp_path, m
     """Seed 002, 3.4: alpha2 ends on the mouth-interior head; a beta continued from it, and the final-recipe avatar
     fine-tuned from that beta, draw their synthetic samples from the same head (from alpha1: the plain head), and
     each run names the model it continues."""
+    from avatarlab.avatar import finetune
     from avatarlab.data.synthetic import SyntheticGenerator
     from avatarlab.model.head_nerf import load_model_file, synthetic_mouth
-    from avatarlab.train import finetune, pretrain
-
+    from avatarlab.pretrain import train as pretrain
     faces = []  # the face count of the head each synthetic draw comes from (the mouth interior adds faces)
     sample = SyntheticGenerator.sample
     monkeypatch.setattr(SyntheticGenerator, "sample",

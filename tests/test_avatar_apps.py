@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from avatarlab.apps.avatar import orbit
-from avatarlab.apps.telepresence import payload
+from avatarlab.avatar.telepresence import payload
 from avatarlab.data.real_images import replace_with_interpolated, z_augment
-from avatarlab.evaluate.report import PUBLISHED_TABLE2, Table, comparison_table, final_avatar_table, interp_table
+from avatarlab.model.avatar import orbit
 from avatarlab.render.camera import Camera
+from avatarlab.report.build import PUBLISHED_TABLE2, Table, comparison_table, final_avatar_table, interp_table
 
 
 def test_recreated_frames_take_the_interpolated_image_and_the_neighbours_mean(tmp_path):
@@ -116,7 +116,7 @@ def test_a_table_shows_eight_columns_rounded_to_its_noise_and_says_which_row_is_
     """What a reader sees: at most 8 columns (the others named, all in the CSV), a value with its CI rounded to the
     CI's first significant digit + 1, the best row marked, and one sentence on whether it beats its baseline beyond
     the noise."""
-    from avatarlab.evaluate.table import Headline, rounded
+    from avatarlab.report.table import Headline, rounded
 
     columns = ["model", "psnr", "psnr_ci95", "best_baseline", "gain", "gain_ci95"] + [f"x{i}" for i in range(6)]
     table = Table("t", "T", columns, "a note", headline=Headline("psnr", ("model",)))

@@ -1,10 +1,10 @@
-"""The claims table's one rule (evaluate/claims.py): every verdict from (number, claimed side, noise, baselines)."""
+"""The claims table's one rule (report/claims.py): every verdict from (number, claimed side, noise, baselines)."""
 from __future__ import annotations
 
 import pytest
 
-from avatarlab.evaluate import claims
-from avatarlab.evaluate.claims import RULE, Evidence, mean_difference_noise, verdict
+from avatarlab.report import claims
+from avatarlab.report.claims import RULE, Evidence, mean_difference_noise, verdict
 from avatarlab.workflow.layout import ResultsTree
 
 

@@ -6,8 +6,8 @@ from omegaconf import OmegaConf
 
 from avatarlab.cli import COMMANDS
 from avatarlab.cli import main as cli_main
-from avatarlab.config import CONF_DIR
 from avatarlab.headmodel import HeadModelFileError, load_head_model_data
+from avatarlab.runtime.config import CONF_DIR
 
 SCALES = sorted(p.stem for p in (CONF_DIR / "scale").glob("*.yaml"))
 HEAD_MODELS = sorted(p.stem for p in (CONF_DIR / "head_model").glob("*.yaml"))

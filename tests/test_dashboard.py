@@ -1,4 +1,4 @@
-"""The metrics dashboard as a user opens it: `python -m avatarlab.dashboard` (make dashboard) over a store with
+"""The metrics dashboard as a user opens it: `python -m avatarlab.runtime.dashboard` (make dashboard) over a store with
 avatar runs, looked at in headless Chromium - the runs table and the metrics of the compared runs."""
 import json
 import os
@@ -38,7 +38,7 @@ def dashboard(tmp_path_factory):
         pytest.skip("Debian's chromium is not installed (`make test` installs it with apt-get where it can)")
     import mlflow
 
-    from avatarlab.tracking import init_store, start_run
+    from avatarlab.runtime.tracking import init_store, start_run
 
     results = tmp_path_factory.mktemp("dash") / "results"
     saved = os.environ.get("MLFLOW_TRACKING_URI")  # mlflow.set_tracking_uri exports it: restore it afterwards
@@ -53,7 +53,7 @@ def dashboard(tmp_path_factory):
                              "test_all_st_lpips": 0.31 - 0.01 * k, "test_all_gain_psnr": -1.25 + k})
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    server = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results),
+    server = subprocess.Popen([sys.executable, "-m", "avatarlab.runtime.dashboard", "--results", str(results),
                                "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                               env=env, start_new_session=True)  # its own process group: the server's workers too
     base = f"http://127.0.0.1:{port}"
@@ -120,7 +120,7 @@ def test_dashboard_shows_the_runs_table_with_metrics(dashboard, tmp_path):
 def test_the_printed_link_opens_the_runs_table_with_the_quality_columns(dashboard, tmp_path):
     """The link `make dashboard` prints: the runs view of the scale's experiment (model training, not GenAI), with
     test PSNR, its gain over the best baseline, SSIM, ST-LPIPS and the stage/subject tags visible without picking."""
-    from avatarlab.dashboard import dashboard_link
+    from avatarlab.runtime.dashboard import dashboard_link
 
     base, results, port = dashboard
     link = dashboard_link(results, port, "smoke")
@@ -140,7 +140,7 @@ def test_the_printed_link_opens_the_runs_table_with_the_quality_columns(dashboar
 
 def local_store(results):
     """A SQLite store under `results`, whatever MLFLOW_TRACKING_URI says (restored afterwards)."""
-    from avatarlab.tracking import init_store
+    from avatarlab.runtime.tracking import init_store
 
     saved = os.environ.pop("MLFLOW_TRACKING_URI", None)
     try:
@@ -159,7 +159,7 @@ def test_a_taken_port_is_reported_and_the_exit_status_is_1(tmp_path):
         busy.listen()
         port = busy.getsockname()[1]
         env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-        out = subprocess.run([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results), "--port",
+        out = subprocess.run([sys.executable, "-m", "avatarlab.runtime.dashboard", "--results", str(results), "--port",
                               str(port)], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 1
     assert f"port {port} on 127.0.0.1 is already in use" in out.stderr and "dashboard:" not in out.stdout
@@ -179,7 +179,7 @@ def test_sigterm_stops_the_server_and_all_its_workers(tmp_path, sig):
     local_store(results)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    proc = subprocess.Popen([sys.executable, "-m", "avatarlab.dashboard", "--results", str(results), "--port",
+    proc = subprocess.Popen([sys.executable, "-m", "avatarlab.runtime.dashboard", "--results", str(results), "--port",
                              str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         for _ in range(120):
@@ -218,7 +218,7 @@ def test_every_documented_dashboard_filter_runs_on_mlflows_search(tmp_path):
     finding the runs it is meant to: MLflow 3.17 rejects, e.g., `IN (...)` on tags."""
     import mlflow
 
-    from avatarlab.tracking import init_store, start_run
+    from avatarlab.runtime.tracking import init_store, start_run
 
     filters = documented_filters()
     assert len(filters) >= 2, filters

@@ -118,8 +118,8 @@ def test_speech_models_train_in_mixed_precision(head_model):
 
 @needs_cuda
 def test_fits_renders_and_networks_on_cuda_match_the_cpu(tmp_path, head_model):
-    from avatarlab.data.portraits import render_portraits
     from avatarlab.preprocess.interp.training import train, training_triplets
+    from avatarlab.pretrain.portraits import render_portraits
 
     cfg = compose_config(["scale=smoke", "subject=portraits"])
     cpu_params, cpu_chunks, _ = render_portraits(cfg, torch.device("cpu"))
@@ -139,8 +139,8 @@ def test_fits_renders_and_networks_on_cuda_match_the_cpu(tmp_path, head_model):
 
 @needs_cuda
 def test_rgb_fit_on_cuda_matches_the_cpu():
-    from avatarlab.data.synthetic_subject import render_subject
     from avatarlab.preprocess.fit_rgb import evaluate_fit, fit_video
+    from avatarlab.preprocess.synthetic_subject import render_subject
 
     cfg = compose_config(["scale=smoke", "subject=synth_talk"])
     truth = render_subject(cfg, torch.device("cuda"))

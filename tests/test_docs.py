@@ -55,7 +55,7 @@ def test_the_readmes_results_are_copied_from_the_card_they_name():
     """Every number between `<!-- card: docs/results/X.md -->` and `<!-- /card -->` in the README stands, as written,
     in that committed results card (evaluate/results_card.numbers_not_in); without such a block the README says that
     no card is committed."""
-    from avatarlab.evaluate.results_card import numbers_not_in
+    from avatarlab.report.results_card import numbers_not_in
 
     readme = (REPO / "README.md").read_text()
     blocks = re.findall(r"<!-- card: (\S+) -->(.*?)<!-- /card -->", readme, re.S)

@@ -35,7 +35,7 @@ def _env(package_dir: Path, **extra) -> dict:
 
 
 def _run(env, cwd, *args, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "fs_step_module", *args], env=env, cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "avatarlab.runtime.forkserver", "fs_step_module", *args], env=env, cwd=cwd,
                           capture_output=True, text=True, timeout=120, **kw)
 
 
@@ -46,14 +46,14 @@ def served(tmp_path_factory):
     (root / "fs_step_module.py").write_text(STEP)
     env = _env(root)
     first = _run(env, root, "3", "plain")
-    where = subprocess.run([sys.executable, "-c", "from avatarlab.forkserver import socket_path; print(socket_path())"],
+    where = subprocess.run([sys.executable, "-c", "from avatarlab.runtime.forkserver import socket_path; print(socket_path())"],
                            env=env, cwd=root, capture_output=True, text=True, check=True).stdout.strip()
     deadline = time.monotonic() + 90
     while not Path(where).exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     assert Path(where).exists(), "the first step starts the server"
     yield root, env, first
-    subprocess.run([sys.executable, "-m", "avatarlab.forkserver", "--stop"], env=env, cwd=root, timeout=30)
+    subprocess.run([sys.executable, "-m", "avatarlab.runtime.forkserver", "--stop"], env=env, cwd=root, timeout=30)
 
 
 def test_a_forked_step_behaves_as_python_minus_m(served, tmp_path):
@@ -102,7 +102,7 @@ def _sleeping_step(served, tmp_path) -> tuple[subprocess.Popen, int]:
     """A client whose forked step sleeps: the client's process and the step's pid."""
     root, env, _ = served
     pid_file = tmp_path / "pid"
-    client = subprocess.Popen([sys.executable, "-m", "avatarlab.forkserver", "fs_step_module", "0", "--sleep",
+    client = subprocess.Popen([sys.executable, "-m", "avatarlab.runtime.forkserver", "fs_step_module", "0", "--sleep",
                                str(pid_file)], env=env, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return client, _wait_for(pid_file)
 
@@ -132,7 +132,7 @@ def test_switched_off_it_runs_the_plain_way(served, tmp_path):
 
 
 def test_a_socket_folder_others_can_enter_is_not_used(tmp_path):
-    from avatarlab.forkserver import connect, private_folder
+    from avatarlab.runtime.forkserver import connect, private_folder
 
     folder = tmp_path / "sockets"
     folder.mkdir(mode=0o700)

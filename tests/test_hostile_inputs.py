@@ -11,8 +11,8 @@ from helpers import fake_video_subject, step_cfg
 from helpers.subjects import tiny_model_overrides
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.errors import InputFileError, TrainingError
-from avatarlab.safe_load import load_tensors
+from avatarlab.runtime.errors import InputFileError, TrainingError
+from avatarlab.runtime.safe_load import load_tensors
 
 
 @pytest.mark.parametrize("key, index, value", [("expression", (0, 2), math.nan), ("shape", (0,), math.inf),
@@ -32,8 +32,8 @@ def test_a_nan_or_infinity_in_a_fit_stops_its_reader_naming_the_file_and_key(tmp
 def test_a_loss_that_is_not_finite_stops_training_at_its_iteration_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     from helpers import fake_real_set
 
-    from avatarlab.train import loop, pretrain
-
+    from avatarlab.pretrain import train as pretrain
+    from avatarlab.training import loop
     fake_real_set(tmp_path / "real")
     cfg = step_cfg(pretrain, tiny_model_overrides() + ["strategy=alpha1", "pretrain.iterations=6",
                                                        "pretrain.checkpoint_every=2",
@@ -66,7 +66,7 @@ def test_a_half_written_checkpoint_says_how_to_start_over(tmp_path):
 
 
 def test_a_report_shows_no_nan_as_a_number():
-    from avatarlab.evaluate.table import Table
+    from avatarlab.report.table import Table
 
     table = Table("t", "t", ["name", "psnr"])
     table.add(name="a", psnr=math.nan)
@@ -113,8 +113,8 @@ def test_subject_files_whose_names_snakemake_cannot_carry_are_named_at_planning(
 def test_a_truncated_mpg_whose_container_declares_no_count_stops_naming_the_file(tmp_path):
     from helpers import SHARED_DATA
 
-    from avatarlab.errors import InputError
     from avatarlab.preprocess.frames import read_video
+    from avatarlab.runtime.errors import InputError
 
     clips = sorted((SHARED_DATA / "grid").glob("*.mpg")) if SHARED_DATA else []
     if not clips:
@@ -133,8 +133,8 @@ def test_a_truncated_mpg_whose_container_declares_no_count_stops_naming_the_file
 def test_an_image_too_small_to_hold_a_face_is_refused_by_name(tmp_path, size):
     import cv2
 
-    from avatarlab.errors import InputError
     from avatarlab.preprocess.frames import MIN_SIDE, load_frames
+    from avatarlab.runtime.errors import InputError
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -156,7 +156,7 @@ def test_an_image_too_small_to_hold_a_face_is_refused_by_name(tmp_path, size):
 def test_every_size_has_an_upper_bound_named_before_any_job(override, expected):
     from helpers import compose_config
 
-    from avatarlab.schema import problems
+    from avatarlab.runtime.schema import problems
 
     assert expected in problems(compose_config(["scale=smoke", override]))
     for scale in ("smoke", "tiny", "paper"):
@@ -212,8 +212,7 @@ def test_local_cluster_down_removes_only_a_folder_it_made(tmp_path):
 def test_an_interrupted_report_leaves_the_previous_one_whole(tmp_path, monkeypatch):
     from test_report import write_avatar
 
-    from avatarlab.evaluate import report
-
+    from avatarlab.report import build as report
     results, final = tmp_path / "results", "beta6_from_alpha2"
     for k, psnr in enumerate((26.0, 26.4)):
         write_avatar(results, "synth_talk", "final", final + (f"_seed{k}" if k else ""), final, psnr)

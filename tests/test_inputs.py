@@ -10,10 +10,10 @@ import pytest
 import torch
 from helpers import compose_config
 
-from avatarlab.errors import ConfigError, InputError, InputFileError
 from avatarlab.preprocess.frames import read_video
-from avatarlab.safe_load import load_arrays, load_tensors
-from avatarlab.schema import problems, validate
+from avatarlab.runtime.errors import ConfigError, InputError, InputFileError
+from avatarlab.runtime.safe_load import load_arrays, load_tensors
+from avatarlab.runtime.schema import problems, validate
 
 
 class Payload:
@@ -112,7 +112,7 @@ def test_a_video_without_a_face_stops_in_the_landmark_step_in_one_line(tmp_path)
 
 @pytest.mark.slow
 def test_a_setting_of_the_wrong_type_stops_a_step_in_one_line(tmp_path):
-    proc = run_step("avatarlab.train.pretrain", "scale=smoke", "pretrain.lr=abc", f"hydra.run.dir={tmp_path}")
+    proc = run_step("avatarlab.pretrain.train", "scale=smoke", "pretrain.lr=abc", f"hydra.run.dir={tmp_path}")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == "avatarlab error: invalid settings: pretrain.lr: expected a " \
                                                    "number, got 'abc'"

@@ -5,8 +5,8 @@ import pytest
 import torch
 from helpers import SHARED_DATA, compose_config, interp_config
 
-from avatarlab.geometry import procrustes_error_mm
 from avatarlab.headmodel import HeadModel
+from avatarlab.metrics.alignment import procrustes_error_mm
 from avatarlab.preprocess.crop import crop_and_resize, crop_points, frame_crops
 from avatarlab.preprocess.fit_rgb import FitWeights, RGBFitter, choose_keyframes, fit_clip_lighting, rgb_fit_loss
 from avatarlab.preprocess.fit_rgbd import depth_to_points, lift_landmarks, rgbd_block_losses, robust_landmarks

@@ -248,8 +248,7 @@ def test_eq8_offsets_only_for_real_samples(tmp_path):
 
 
 def pretrain_cfg(tmp_path, name, *extra):
-    from avatarlab.train import pretrain
-
+    from avatarlab.pretrain import train as pretrain
     if not (tmp_path / "real").is_dir():
         fake_real_set(tmp_path / "real")
     return step_cfg(pretrain, ["scale=smoke", "strategy=beta4", "strategy.init=null",
@@ -258,14 +257,13 @@ def pretrain_cfg(tmp_path, name, *extra):
 
 
 def short_training(tmp_path, name, *extra):
-    from avatarlab.train import pretrain
-
+    from avatarlab.pretrain import train as pretrain
     return pretrain.pretrain_model(pretrain_cfg(tmp_path, name, *extra), torch.device("cpu"))
 
 
 def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration():
     from avatarlab.data.schedule import Schedule
-    from avatarlab.train.loop import Recipe, lr_factor
+    from avatarlab.training.loop import Recipe, lr_factor
 
     schedule = Schedule(M=100, N=110, p_min=0.0, p_max=0.0, mouth_from=None)
     constant = Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3)
@@ -282,8 +280,7 @@ def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration()
 @pytest.mark.slow
 @pytest.mark.parametrize("decay, ema", [("none", 0.0), ("cosine", 0.0), ("none", 0.5)])
 def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, ema):
-    from avatarlab.train import pretrain
-
+    from avatarlab.pretrain import train as pretrain
     settings = [f"pretrain.lr_decay={decay}", "pretrain.lr_final=0.05", f"pretrain.ema_decay={ema}"]
     full_net, full, _ = short_training(tmp_path, "full", *settings)
     assert [h["step"] for h in full.history] == list(range(1, 10))
@@ -310,8 +307,8 @@ def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, 
 @pytest.mark.slow
 def test_a_checkpoint_of_other_work_is_not_resumed(tmp_path):
     """A checkpoint left by other settings (or code, or data) is ignored: the run trains from iteration 0."""
-    from avatarlab.provenance import fingerprint
-    from avatarlab.train.checkpoint import Checkpoint
+    from avatarlab.runtime.provenance import fingerprint
+    from avatarlab.training.checkpoint import Checkpoint
 
     _, first, _ = short_training(tmp_path, "run")
     stale = Checkpoint(tmp_path / "run" / "checkpoint.pt", fingerprint({"other": 1}, "code", {}))
@@ -329,7 +326,7 @@ def test_a_resolution_tier_continues_the_final_recipe_at_twice_the_size(tmp_path
     """The tier step as the workflow runs it (Plan's overrides, the final recipe's strategy): the parent's weights
     at twice the image and feature-map size, from the parent's last iteration, for the tier's iterations."""
     from avatarlab.model.head_nerf import load_model_file
-    from avatarlab.train import pretrain
+    from avatarlab.pretrain import train as pretrain
     from avatarlab.workflow.targets import resolution_tiers
 
     smoke = compose_config(["scale=smoke"]).scale
@@ -367,7 +364,7 @@ def test_paper_scale_sizes_match_the_dissertation():
 
 
 def test_device_comes_from_the_config():
-    from avatarlab.config import resolve_device
+    from avatarlab.runtime.config import resolve_device
 
     assert resolve_device(compose_config(["device=cpu"])) == torch.device("cpu")
     expected = "cuda" if torch.cuda.is_available() else "cpu"
@@ -412,11 +409,11 @@ def test_training_on_cuda_matches_the_cpu(tmp_path):
 
 
 def test_controlled_sweeps_move_one_control_and_measure_whether_a_model_follows_it():
-    """evaluate/controls.py (figs. 27, 29-32): each variant differs from the frame in its control only; the response
+    """pretrain/controls.py (figs. 27, 29-32): each variant differs from the frame in its control only; the response
     correlation is 1 for a model that changes as the head model does, 0 for one that ignores the control."""
     from omegaconf import OmegaConf
 
-    from avatarlab.evaluate.controls import response_correlation, variants
+    from avatarlab.pretrain.controls import response_correlation, variants
     from avatarlab.render.camera import orbit_camera
 
     cfg = OmegaConf.create({"jaw_rad": [0.0, 0.2, 0.4], "neck_deg": [-20, 0, 20], "distance_offsets": [-0.1, 0, 0.1],

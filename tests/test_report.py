@@ -7,8 +7,8 @@ import math
 
 import pytest
 
-from avatarlab.evaluate.report import build
-from avatarlab.seed_stats import gain_verdict, mean_ci, paired_difference, pooled_sd, single_run_threshold
+from avatarlab.metrics.seeds import gain_verdict, mean_ci, paired_difference, pooled_sd, single_run_threshold
+from avatarlab.report.build import build
 
 
 def test_mean_ci_is_students_t():
@@ -93,7 +93,7 @@ def test_report_tables_show_seed_means_cis_and_verdicts(tmp_path):
 def test_the_method_doc_lists_every_substitution_of_the_report():
     from pathlib import Path
 
-    from avatarlab.evaluate.report import SUBSTITUTIONS
+    from avatarlab.report.build import SUBSTITUTIONS
 
     readme = (Path(__file__).resolve().parents[1] / "docs" / "method.md").read_text()
     for what, theirs, ours, why in SUBSTITUTIONS:
@@ -106,7 +106,7 @@ def test_the_tiny_sizes_substitution_states_tinys_config():
 
     import yaml
 
-    from avatarlab.evaluate.report import SUBSTITUTIONS
+    from avatarlab.report.build import SUBSTITUTIONS
 
     tiny = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf/scale/tiny.yaml").read_text())
     row = next(ours for what, _, ours, _ in SUBSTITUTIONS if what == "sizes (tiny)")
@@ -129,7 +129,7 @@ def test_the_weight_averaging_substitution_states_the_configured_decays():
     """The row names tiny's decay, and paper scale keeps the dissertation's last iterate (decay 0)."""
     from helpers import compose_config
 
-    from avatarlab.evaluate.report import SUBSTITUTIONS
+    from avatarlab.report.build import SUBSTITUTIONS
 
     decay = {name: compose_config([f"scale={name}"]).scale.finetune_final_ema_decay  # smoke, paper inherit tiny's
              for name in ("smoke", "tiny", "paper")}
@@ -143,7 +143,7 @@ def test_the_rgb_fit_substitution_states_the_configured_jaw_limits():
 
     import yaml
 
-    from avatarlab.evaluate.report import SUBSTITUTIONS
+    from avatarlab.report.build import SUBSTITUTIONS
 
     config = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf/config.yaml").read_text())
     low, high = config["fit_rgb"]["jaw_limits_deg"]
@@ -154,7 +154,7 @@ def test_the_rgb_fit_substitution_states_the_configured_jaw_limits():
 def test_figure_rows_and_columns_are_labelled_and_readable():
     import numpy as np
 
-    from avatarlab.evaluate.figures import labelled_grid
+    from avatarlab.report.figures import labelled_grid
 
     rows = [(name, np.full((32, 32 * 4, 3), value, np.uint8)) for name, value in
             (("truth", 40), ("avatar", 120), ("best baseline: nearest", 200))]
@@ -170,7 +170,7 @@ def test_the_time_vs_quality_figure_marks_where_the_avatar_gets_sharper_than_a_c
     line, and the first snapshot below it."""
     from PIL import Image
 
-    from avatarlab.evaluate.figures import first_below, quality_figures
+    from avatarlab.report.figures import first_below, quality_figures
 
     curve = [{"step": 100 * k, "seconds": 10.0 * k, "psnr": 20 + k, "ssim": 0.8, "st_lpips": 0.4 - 0.05 * k}
              for k in range(1, 6)]

@@ -207,8 +207,8 @@ def test_flame2020_portraits_paint_the_hair_into_the_uv_texture(tmp_path):
     vertices as the procedural head's on a FLAME-layout copy of it) is painted into the texels of the scalp faces."""
     from helpers import compose_config
 
-    from avatarlab.data.portraits import hair_mask, hair_texels, render_portraits
     from avatarlab.headmodel import load_head_model
+    from avatarlab.pretrain.portraits import hair_mask, hair_texels, render_portraits
 
     head = build_procedural_head(ProceduralSpec(n_shape=6, n_expression=4, n_texture=3))
     write_flame_layout_files(tmp_path, head)

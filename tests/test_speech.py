@@ -344,7 +344,7 @@ def test_augmented_audio_has_the_asked_noise_and_keeps_its_length():
     c = augment(clean, 25_000, np.random.default_rng(2), settings)
     assert a.dtype == np.float32 and len(a) == len(clean) and np.array_equal(a, b) and not np.allclose(a, c)
     assert np.corrcoef(a, clean)[0, 1] > 0.2  # still the same sound
-    from avatarlab.errors import ConfigError
+    from avatarlab.runtime.errors import ConfigError
     from avatarlab.speech.augment import check_settings
 
     check_settings(settings)
@@ -478,8 +478,8 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     assert 0 <= speakers["grid"]["synthetic"]["phoneme_accuracy_vs_alignment"] <= 1
     assert "phoneme_accuracy_vs_alignment" not in speakers["obama"]["synthetic"]  # no sentence to align
     # the report's speech table: one row per model, speaker and row kind, as trained first, beside the still mouth
-    from avatarlab.evaluate.report import speech_table
-    from avatarlab.io import write_json
+    from avatarlab.report.build import speech_table
+    from avatarlab.runtime.io import write_json
 
     write_json(tmp_path / "results" / "speech" / "real_eval.json", report)
     real_rows = [r for r in speech_table(ResultsTree(tmp_path / "results"), "smoke").rows if "real" in str(r.get("data"))]
@@ -492,7 +492,7 @@ def test_real_clip_evaluation_scores_models_beside_a_still_mouth(tmp_path, head_
     low, high = sorted(tuned["gain_mean_per_clip"])
     assert real_rows[1]["fine_tuning_seeds"] == (f"{low:+.2f} to {high:+.2f} over 2 seeds, "
                                                  f"{tuned['beats_still_mouth']} beyond the CI")
-    from avatarlab.evaluate.report import speech_timing_table
+    from avatarlab.report.build import speech_timing_table
 
     timing_rows = speech_timing_table(ResultsTree(tmp_path / "results")).rows
     assert len(timing_rows) == 6 and timing_rows[0]["opening_r"] == first["opening_timing"]["model_r"]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from avatarlab.errors import ConfigError
+from avatarlab.runtime.errors import ConfigError
 from avatarlab.workflow.step_times import main, parse_log, table
 
 LOG = """Building DAG of jobs...

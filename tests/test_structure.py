@@ -11,12 +11,11 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "avatarlab"
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-#: the foundations: geometry, rendering, the head model, the network and plumbing every stage may use
-FOUNDATIONS = {"render", "headmodel", "model", "geometry", "errors", "safe_load", "provenance", "io", "config",
-               "seed_stats"}
-#: the stages and the infrastructure that runs them
-STAGES = {"preprocess", "data", "train", "evaluate", "apps", "speech", "workflow", "tracking", "entry", "dashboard",
-          "cli", "schema"}
+#: the foundations: geometry of the head, rendering, the network, the data, the training loop, the measures and the
+#: runtime (config, entry point, schema, tracking, provenance, fork server, io, errors) every stage may use
+FOUNDATIONS = {"headmodel", "render", "model", "data", "training", "metrics", "runtime"}
+#: the pipeline's stages, the workflow's plan and the command line that runs them
+STAGES = {"preprocess", "pretrain", "avatar", "speech", "report", "workflow", "cli"}
 
 
 def module_name(path: Path) -> str:
@@ -86,9 +85,9 @@ def test_no_import_cycle_between_packages():
 
 def test_the_import_checks_can_fail(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("from typing import TYPE_CHECKING\nfrom avatarlab.train.loop import train\n"
+    bad.write_text("from typing import TYPE_CHECKING\nfrom avatarlab.training.loop import train\n"
                    "if TYPE_CHECKING:\n    from avatarlab.data.splits import subject_split\n")
-    assert runtime_imports(bad) == {"avatarlab.train.loop"}  # the TYPE_CHECKING import does not count
+    assert runtime_imports(bad) == {"avatarlab.training.loop"}  # the TYPE_CHECKING import does not count
 
 
 def equation_rows() -> list[tuple[str, str]]:
@@ -152,3 +151,13 @@ def test_every_entry_points_main_is_a_hydra_step():
         if not mains or not any("entry_point" in ast.unparse(d) for d in mains[0].decorator_list):
             undecorated.append(name)
     assert len(steps) >= 15 and not undecorated, undecorated
+
+
+def test_every_package_is_a_stage_or_a_foundation_and_the_root_holds_only_the_cli():
+    """The folders name the pipeline's stages beside the foundations they share; no loose module at the root but the
+    command line."""
+    packages = {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert packages == (FOUNDATIONS | STAGES) - {"cli"}, packages ^ ((FOUNDATIONS | STAGES) - {"cli"})
+    assert sorted(p.name for p in SRC.glob("*.py")) == ["__init__.py", "cli.py"]
+    entries = {name.split(".")[1] for name, path in MODULES.items() if is_entry_point(path)}
+    assert entries <= STAGES - {"workflow", "cli"}, entries  # every workflow step lives in a stage folder

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from avatarlab.errors import ConfigError
-from avatarlab.evaluate.sweep_report import summarise
+from avatarlab.report.sweep_report import summarise
+from avatarlab.runtime.errors import ConfigError
 from avatarlab.workflow.sweeps import expand, load_sweep, load_sweeps
 
 
@@ -112,7 +112,7 @@ def test_sweep_table_shows_the_also_metrics_beside_the_main_one(tmp_path):
 
 def test_sweep_table_reads_only_the_seeds_the_workflow_ran(tmp_path):
     """workflow config sweep_seeds=2: the table step gets --seeds 2 and reads seeds 0 and 1 only (no seed-2 points)."""
-    from avatarlab.evaluate.sweep_report import main
+    from avatarlab.report.sweep_report import main
 
     spec = tmp_path / "lr.yaml"
     spec.write_text("step: finetune\nsubject: s\ninit: alpha1\noverrides: {finetune.lr: '1e-4,1e-3', seed: range(3)}\n")
@@ -133,7 +133,7 @@ def test_a_far_baseline_does_not_flatten_the_sweeps_points():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from avatarlab.evaluate.sweep_report import baseline_line
+    from avatarlab.report.sweep_report import baseline_line
 
     fig, (near, far) = plt.subplots(1, 2)
     points = [22.40, 22.45, 22.50]
@@ -170,7 +170,7 @@ def test_a_sweep_chooses_on_validation_and_the_test_only_scores(tmp_path):
     assert chosen[0]["validation_psnr"] == pytest.approx(25.005)
     assert chosen[0]["differs_from_best"] != "best"  # the test's best is the other one: a score, not the choice
     assert "best mean validation PSNR" in table.note and "| chosen |" in table.markdown()
-    from avatarlab.evaluate.sweep_report import validation_score
+    from avatarlab.report.sweep_report import validation_score
 
     point = folder / sweep.points[0].name  # a train.json with the scores only: the chosen step's
     (point / "train.json").write_text(json.dumps({"chosen_step": 300, "validation_scores": [

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 @pytest.fixture
 def store(tmp_path):
     saved = os.environ.pop("MLFLOW_TRACKING_URI", None)
-    from avatarlab.tracking import init_store
+    from avatarlab.runtime.tracking import init_store
 
     results = tmp_path / "results"
     init_store(results, scales=("smoke",))
@@ -41,7 +41,7 @@ def test_a_run_killed_with_kill_9_is_marked_killed_by_the_next_start(store, tmp_
     results, _ = store
     script = tmp_path / "killed.py"
     script.write_text(
-        "import os, sys\nfrom omegaconf import OmegaConf\nfrom avatarlab.tracking import start_run\n"
+        "import os, sys\nfrom omegaconf import OmegaConf\nfrom avatarlab.runtime.tracking import start_run\n"
         f"cfg = OmegaConf.create({{'paths': {{'results': {str(results)!r}}}, 'tracking': {{'enabled': True, "
         "'experiment': 'avatarlab-smoke', 'scale': 'smoke'}})\n"
         "with start_run(cfg, 'pretrain', 'doomed'):\n    os.kill(os.getpid(), 9)\n")
@@ -50,7 +50,7 @@ def test_a_run_killed_with_kill_9_is_marked_killed_by_the_next_start(store, tmp_
     assert proc.returncode == -9
     (doomed,) = runs_of(results, "attributes.run_name = 'doomed'")
     assert doomed.info.status == "RUNNING"
-    from avatarlab.tracking import start_run
+    from avatarlab.runtime.tracking import start_run
 
     with start_run(store[1], "pretrain", "the next step"):  # any later step's start, not only the store's creation
         pass
@@ -59,7 +59,7 @@ def test_a_run_killed_with_kill_9_is_marked_killed_by_the_next_start(store, tmp_
 
 def test_a_failed_rerun_keeps_the_finished_run_it_would_replace(store, tmp_path):
     """A full disk: the new run of an output dies; the old FINISHED run of that output stays until a new one ends."""
-    from avatarlab.tracking import start_run
+    from avatarlab.runtime.tracking import start_run
 
     results, cfg = store
     out = tmp_path / "results" / "smoke" / "avatars" / "x"
@@ -77,9 +77,9 @@ def test_a_failed_rerun_keeps_the_finished_run_it_would_replace(store, tmp_path)
 
 @pytest.mark.parametrize("damage", ["truncated", "garbage", "emptied"])
 def test_a_damaged_store_stops_once_in_one_line_naming_it(store, damage):
-    from avatarlab import tracking
-    from avatarlab.errors import InputFileError
-    from avatarlab.tracking import main, start_run
+    from avatarlab.runtime import tracking
+    from avatarlab.runtime.errors import InputFileError
+    from avatarlab.runtime.tracking import main, start_run
 
     results, cfg = store
     db = results / "mlflow.db"
@@ -99,7 +99,7 @@ def test_a_damaged_store_stops_once_in_one_line_naming_it(store, damage):
 def test_a_resumed_step_continues_its_run_and_a_rerun_leaves_one_run(store, tmp_path):
     import mlflow
 
-    from avatarlab.tracking import start_run
+    from avatarlab.runtime.tracking import start_run
 
     results, cfg = store
     out = tmp_path / "results" / "smoke" / "pretrain" / "alpha1"
@@ -124,7 +124,7 @@ def test_two_workflows_starting_at_once_both_get_the_dashboard_view(store, monke
 
     from mlflow.tracking import MlflowClient
 
-    from avatarlab.tracking import VIEW_COLUMNS, VIEW_KEY, init_store, set_dashboard_view
+    from avatarlab.runtime.tracking import VIEW_COLUMNS, VIEW_KEY, init_store, set_dashboard_view
 
     results, _ = store
     experiment = client(results).get_experiment_by_name("avatarlab-smoke").experiment_id
@@ -153,7 +153,7 @@ def test_two_workflows_starting_at_once_both_get_the_dashboard_view(store, monke
 
 def test_evaluation_metrics_reach_the_dashboard_rounded(store):
     """What the dashboard shows: 4 decimals (eval.json keeps every digit); the gain and the baselines too."""
-    from avatarlab.tracking import log_to_run, start_run
+    from avatarlab.runtime.tracking import log_to_run, start_run
 
     results, cfg = store
     with start_run(cfg, "finetune", "s/alpha1") as run:
@@ -171,8 +171,8 @@ def test_an_evaluation_logs_into_a_finished_run_without_reopening_it(store, monk
     under its training process's pid: smoke run of 2026-12-06, a pretrained model's run marked KILLED)."""
     import mlflow
 
-    from avatarlab import tracking
-    from avatarlab.tracking import log_to_run, mark_dead_runs_killed, start_run
+    from avatarlab.runtime import tracking
+    from avatarlab.runtime.tracking import log_to_run, mark_dead_runs_killed, start_run
 
     results, cfg = store
     with start_run(cfg, "pretrain", "beta5_from_alpha1") as run:

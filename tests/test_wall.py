@@ -23,8 +23,7 @@ from PIL import Image
 def parent(tmp_path_factory):
     from helpers import fake_real_set
 
-    from avatarlab.train import pretrain
-
+    from avatarlab.pretrain import train as pretrain
     folder = tmp_path_factory.mktemp("parent")
     fake_real_set(folder / "portraits")
     cfg = step_cfg(pretrain, tiny_model_overrides() + [f"pretrain.out_dir={folder / 'alpha1'}",
@@ -78,9 +77,8 @@ def digests(folder) -> dict[str, str]:
 
 @pytest.mark.slow
 def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp_path, parent):
-    from avatarlab.evaluate import avatar as evaluation
-    from avatarlab.train import finetune
-
+    from avatarlab.avatar import evaluate as evaluation
+    from avatarlab.avatar import finetune
     runs = {}
     for name in ("clean", "noised"):
         subject = fake_video_subject(tmp_path / name / "subject", count=10)
@@ -110,8 +108,8 @@ def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp
 def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
     from helpers import compose_config
 
-    from avatarlab.data.synthetic_subject import render_subject
     from avatarlab.preprocess.fit_rgb import fit_video, identity_frames
+    from avatarlab.preprocess.synthetic_subject import render_subject
 
     clip_overrides = ["fit_rgb.held_out.test_clips=1", "fit_rgb.held_out.validation_clips=1"] if clips else \
         ["fit_rgb.held_out.test_frames=4", "fit_rgb.held_out.validation_frames=2"]

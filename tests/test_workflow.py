@@ -318,7 +318,7 @@ def test_the_report_reads_only_the_results_its_configuration_plans(smoke_run, wo
         assert summary["avatars"] == avatars
         assert "ghost" not in (results / "report" / "tables" / "preprocessing.csv").read_text()
         # without the plan (a report built by hand on the folder) the leftovers are read: the check can fail
-        from avatarlab.evaluate.report import build
+        from avatarlab.report.build import build
 
         assert build(results, workdir / "hand_report", "beta6_from_alpha2", "smoke")["avatars"] == avatars + 1
     finally:
@@ -329,8 +329,8 @@ def test_the_report_reads_only_the_results_its_configuration_plans(smoke_run, wo
 def test_results_card(smoke_run, workdir, tmp_path):
     """`make main`'s last step on the smoke run: provenance, the run's step times and the headline tables, each
     model number beside its best baseline; every number the card's claims quote is the report's."""
-    from avatarlab.evaluate import results_card
-    from avatarlab.evaluate.table import rounded
+    from avatarlab.report import results_card
+    from avatarlab.report.table import rounded
 
     start = tmp_path / "start"
     start.write_text(f"{time.time() - 125:.0f} fresh\n")
@@ -444,7 +444,7 @@ def test_edits_rerun_exactly_what_depends_on_them(smoke_run, workdir, tmp_path):
     copy = repo_copy(tmp_path)
     dry = lambda *a: jobs_planned(snakemake(workdir, "-n", *a, snakefile=copy / "Snakefile"))  # noqa: E731
     assert dry() == {}, "the copy is the same workflow"
-    io = copy / "src/avatarlab/io.py"
+    io = copy / "src/avatarlab/runtime/io.py"
     io.write_text(io.read_text().replace('"""Atomic file writes', '"""Atomic file writes (reworded docstring)', 1)
                   + "\n# a comment\n")
     assert dry() == {}, "a docstring or comment edit in io.py reruns nothing"

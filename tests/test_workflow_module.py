@@ -7,8 +7,8 @@ import yaml
 from helpers import REPO
 from hydra import compose, initialize_config_dir
 
-from avatarlab.config import CONF_DIR
-from avatarlab.provenance import code_digest, imported_modules, source_digest
+from avatarlab.runtime.config import CONF_DIR
+from avatarlab.runtime.provenance import code_digest, imported_modules, source_digest
 from avatarlab.workflow.steps import Steps, declared_reads, hydra_string, hydra_value
 from avatarlab.workflow.targets import Plan
 
@@ -41,28 +41,28 @@ def test_numbers_lists_and_none_keep_their_type():
 
 
 def test_every_entry_module_declares_what_it_reads():
-    modules = ["avatarlab.train.pretrain", "avatarlab.train.finetune", "avatarlab.evaluate.avatar",
-               "avatarlab.evaluate.pretrained", "avatarlab.preprocess.fit_rgb", "avatarlab.speech.train",
-               "avatarlab.evaluate.report", "avatarlab.apps.novel_views"]
+    modules = ["avatarlab.pretrain.train", "avatarlab.avatar.finetune", "avatarlab.avatar.evaluate",
+               "avatarlab.pretrain.evaluate", "avatarlab.preprocess.fit_rgb", "avatarlab.speech.train",
+               "avatarlab.report.build", "avatarlab.avatar.novel_views"]
     for module in modules:
         reads = declared_reads(module)
         assert reads and "scale" not in reads, f"{module}: sizes reach code through its sections, not cfg.scale"
-    assert declared_reads("avatarlab.train.pretrain") == ("seed", "amp", "head_model", "render", "model",
+    assert declared_reads("avatarlab.pretrain.train") == ("seed", "amp", "head_model", "render", "model",
                                                          "synthetic", "strategy", "pretrain", "tracking")
 
 
 def test_settings_are_the_resolved_sections_a_step_reads(steps):
-    settings = yaml.safe_load(steps.settings("avatarlab.train.pretrain", "strategy=beta4"))
-    assert set(settings) == set(declared_reads("avatarlab.train.pretrain"))
+    settings = yaml.safe_load(steps.settings("avatarlab.pretrain.train", "strategy=beta4"))
+    assert set(settings) == set(declared_reads("avatarlab.pretrain.train"))
     assert settings["strategy"]["name"] == "beta4" and settings["model"]["image_size"] == 64  # resolved from scale
-    assert settings != yaml.safe_load(steps.settings("avatarlab.train.pretrain", "strategy=beta5"))
+    assert settings != yaml.safe_load(steps.settings("avatarlab.pretrain.train", "strategy=beta5"))
 
 
 def test_a_user_override_reaches_only_the_steps_that_read_it(steps):
     speech = steps.args("avatarlab.speech.train")
     assert "speech.lr=0.01" in shlex.split(speech)
     assert "speech.lr=0.01" not in shlex.split(steps.args("avatarlab.preprocess.fit_rgb"))
-    assert "speech.lr=0.01" not in shlex.split(steps.args("avatarlab.train.pretrain", "strategy=alpha1"))
+    assert "speech.lr=0.01" not in shlex.split(steps.args("avatarlab.pretrain.train", "strategy=alpha1"))
     # a scale key reaches a step when one of the sections it reads refers to it
     assert "scale.crop_size=96" in shlex.split(steps.args("avatarlab.preprocess.frames"))
     assert "scale.crop_size=96" not in shlex.split(steps.args("avatarlab.speech.train"))
@@ -74,31 +74,33 @@ def test_code_digest_ignores_docstrings_and_comments_but_not_code(tmp_path):
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "helper.py").write_text('"""Helper."""\n\ndef f(x):\n    """Doc."""\n    return x + 1  # one\n')
-    (pkg / "entry.py").write_text("from avatarlab.helper import f\n\nprint(f(1))\n")
-    before = code_digest("avatarlab.entry", src=tmp_path)
-    assert imported_modules("avatarlab.entry", src=tmp_path) == ["avatarlab", "avatarlab.entry", "avatarlab.helper"]
+    (pkg / "step.py").write_text("from avatarlab.helper import f\n\nprint(f(1))\n")
+    before = code_digest("avatarlab.step", src=tmp_path)
+    assert imported_modules("avatarlab.step", src=tmp_path) == ["avatarlab", "avatarlab.helper", "avatarlab.step"]
     (pkg / "helper.py").write_text('"""Helper, reworded."""\n\n\ndef f(x):\n    """Other doc."""\n'
                                    '    # a comment\n    return x + 1  # two\n')
-    assert code_digest("avatarlab.entry", src=tmp_path) == before
+    assert code_digest("avatarlab.step", src=tmp_path) == before
     (pkg / "helper.py").write_text('"""Helper."""\n\ndef f(x):\n    return x + 2\n')
-    assert code_digest("avatarlab.entry", src=tmp_path) != before
+    assert code_digest("avatarlab.step", src=tmp_path) != before
 
 
 def test_tracking_and_error_modules_are_not_part_of_a_steps_code(tmp_path):
     pkg = tmp_path / "avatarlab"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
-    (pkg / "tracking.py").write_text("def log(x):\n    return None\n")
-    (pkg / "entry.py").write_text("from avatarlab.tracking import log\n\nlog(1)\n")
-    before = code_digest("avatarlab.entry", src=tmp_path)
-    (pkg / "tracking.py").write_text("def log(x):\n    print(x)\n")
-    assert code_digest("avatarlab.entry", src=tmp_path) == before
-    (pkg / "entry.py").write_text("from avatarlab.tracking import log\n\nlog(2)\n")
-    assert code_digest("avatarlab.entry", src=tmp_path) != before
+    (pkg / "runtime").mkdir()
+    (pkg / "runtime" / "__init__.py").write_text("")
+    (pkg / "runtime" / "tracking.py").write_text("def log(x):\n    return None\n")
+    (pkg / "step.py").write_text("from avatarlab.runtime.tracking import log\n\nlog(1)\n")
+    before = code_digest("avatarlab.step", src=tmp_path)
+    (pkg / "runtime" / "tracking.py").write_text("def log(x):\n    print(x)\n")
+    assert code_digest("avatarlab.step", src=tmp_path) == before
+    (pkg / "step.py").write_text("from avatarlab.runtime.tracking import log\n\nlog(2)\n")
+    assert code_digest("avatarlab.step", src=tmp_path) != before
 
 
 def test_docstring_edits_in_infrastructure_change_no_digest():
-    io = REPO / "src" / "avatarlab" / "io.py"
+    io = REPO / "src" / "avatarlab" / "runtime" / "io.py"
     text = io.read_text()
     edited = text.replace('"""Atomic file writes', '"""Atomic file writes (reworded)', 1)
     assert edited != text

@@ -27,8 +27,8 @@ REPO = Path(__file__).resolve().parents[2]
 WORKDIR = REPO  # where results/ and logs/ go: the checkout
 LOCAL_SUBJECTS = REPO / "avatarlab.subjects.yaml"  # read by the Snakefile from its work folder
 STEPS = {
-    "render-demo": ("avatarlab.evaluate.head_model_demo", "PNG grid sweeping every head-model parameter"),
-    "dlib-check": ("avatarlab.evaluate.dlib_check", "dlib detection rate and NME on renders of the head model"),
+    "render-demo": ("avatarlab.pretrain.head_model_demo", "PNG grid sweeping every head-model parameter"),
+    "dlib-check": ("avatarlab.pretrain.dlib_check", "dlib detection rate and NME on renders of the head model"),
 }
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
@@ -182,7 +182,7 @@ def report(args) -> int:
                      f"scale={scale}").returncode
     if done:
         return done
-    subprocess.run([sys.executable, "-m", "avatarlab.evaluate.results_card", "--results", tree.root], cwd=REPO)
+    subprocess.run([sys.executable, "-m", "avatarlab.report.results_card", "--results", tree.root], cwd=REPO)
     html = tree.report("workflow_report.html")
     snakemake("--report", html, "--config", f"scale={scale}", capture=True)
     for path in (tree.report("RESULTS.md"), tree.report("README.md"), html):
@@ -191,8 +191,7 @@ def report(args) -> int:
 
 
 def dashboard(args) -> int:
-    from avatarlab import dashboard as dash
-
+    from avatarlab.runtime import dashboard as dash
     return dash.main(["--results", str(REPO / "results"), "--scale", scale_of(args.scale)])
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from avatarlab.config import CONF_DIR
+from avatarlab.runtime.config import CONF_DIR
 
 
 def compose_config(overrides: list[str] | None = None):
@@ -14,7 +14,7 @@ def compose_config(overrides: list[str] | None = None):
 
 def step_cfg(module, overrides: list[str] | None = None):
     """The config a step's main() receives: composed, then restricted to the module's READS."""
-    from avatarlab.entry import step_config
+    from avatarlab.runtime.entry import step_config
 
     return step_config(compose_config(overrides), module.READS)
 

@@ -60,7 +60,7 @@ def torch_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 def rendered_video_subject(folder: Path, frames: int = 48, size: int = 32, preset: str = "talking", seed: int = 1):
     """A video subject as preprocessing would leave it, from a synthetic video of the head model with its truth as the
     fit (frames, masks, landmarks and parameters agree exactly): data a model can learn from."""
-    from avatarlab.data import synthetic_subject
+    from avatarlab.preprocess import synthetic_subject
     from helpers.config import step_cfg
 
     cfg = step_cfg(synthetic_subject, ["scale=smoke", f"subject.frames={frames}", f"subject.video_size={size}",

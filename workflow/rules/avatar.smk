@@ -20,7 +20,7 @@ rule finetune_avatar:
         LOG_TREE.avatar("{subject}", "{recipe}", "{avatar}.log"),
     params:
         **step_params(
-            "avatarlab.train.finetune", extra=lambda wc: PLAN.finetune_choices(avatar_key(wc)),
+            "avatarlab.avatar.finetune", extra=lambda wc: PLAN.finetune_choices(avatar_key(wc)),
             values=lambda wc, input, output: {**PLAN.finetune_values(avatar_key(wc), output.model),
                                               "finetune.init_model": input.model,
                                               **({"finetune.interpolated": input.interpolated[0]}
@@ -32,7 +32,7 @@ rule finetune_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule evaluate_avatar:
@@ -53,7 +53,7 @@ rule evaluate_avatar:
         LOG_TREE.avatar("{subject}", "{recipe}", "{avatar}_eval.log"),
     params:
         **step_params(
-            "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={wc.recipe}",),
+            "avatarlab.avatar.evaluate", extra=lambda wc: (f"finetune={wc.recipe}",),
             values=lambda wc, input, output: {
                 **PLAN.finetune_values(avatar_key(wc), input.model),
                 "seed": avatar_key(wc).seed, "evaluate.model": input.model, "evaluate.out": output.report,
@@ -65,7 +65,7 @@ rule evaluate_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.evaluate {params.args} threads={threads} > {log} 2>&1"
 
 
 rule novel_views:
@@ -79,14 +79,14 @@ rule novel_views:
     log:
         LOG_TREE.app("{subject}", "novel_views.log"),
     params:
-        **app_step("avatarlab.apps.novel_views", "novel_views", **{"apps.out": lambda wc, i, o: o.grid}),
+        **app_step("avatarlab.avatar.novel_views", "novel_views", **{"apps.out": lambda wc, i, o: o.grid}),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.apps.novel_views {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.novel_views {params.args} threads={threads} > {log} 2>&1"
 
 
 rule reenact:
@@ -102,7 +102,7 @@ rule reenact:
     log:
         LOG_TREE.app("{subject}", "reenact_{source}.log"),
     params:
-        **app_step("avatarlab.apps.reenact", "reenact", **{
+        **app_step("avatarlab.avatar.reenact", "reenact", **{
             "apps.out": lambda wc, i, o: o.video, "apps.source_dir": lambda wc, i, o: PLAN.subject_dir(wc.source)}),
     threads: step_threads("light")
     resources:
@@ -110,7 +110,7 @@ rule reenact:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.apps.reenact {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.reenact {params.args} threads={threads} > {log} 2>&1"
 
 
 rule telepresence:
@@ -122,14 +122,14 @@ rule telepresence:
     log:
         LOG_TREE.app("{subject}", "telepresence.log"),
     params:
-        **app_step("avatarlab.apps.telepresence", "telepresence", **{"apps.out": lambda wc, i, o: o.report}),
+        **app_step("avatarlab.avatar.telepresence", "telepresence", **{"apps.out": lambda wc, i, o: o.report}),
     threads: step_threads("light")
     resources:
         **step_resources("light"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.apps.telepresence {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.telepresence {params.args} threads={threads} > {log} 2>&1"
 
 
 rule avatars_all:

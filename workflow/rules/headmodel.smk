@@ -8,7 +8,7 @@ rule render_demo:
     log:
         LOG_TREE.headmodel("render_demo.log"),
     params:
-        **step_params("avatarlab.evaluate.head_model_demo", values=lambda wc, input, output: {"demo.out": output.grid},
+        **step_params("avatarlab.pretrain.head_model_demo", values=lambda wc, input, output: {"demo.out": output.grid},
                       run_dir=lambda wc: TREE.headmodel(".hydra", "render_demo")),
     threads: step_threads("light")
     resources:
@@ -16,7 +16,7 @@ rule render_demo:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.head_model_demo {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.head_model_demo {params.args} threads={threads} > {log} 2>&1"
 
 
 rule dlib_check:
@@ -27,7 +27,7 @@ rule dlib_check:
     log:
         LOG_TREE.headmodel("dlib_check.log"),
     params:
-        **step_params("avatarlab.evaluate.dlib_check",
+        **step_params("avatarlab.pretrain.dlib_check",
                       values=lambda wc, input, output: {"dlib_check.out": output.report,
                                                         "dlib_check.overlay": output.overlay},
                       run_dir=lambda wc: TREE.headmodel(".hydra", "dlib_check")),
@@ -37,4 +37,4 @@ rule dlib_check:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.dlib_check {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.dlib_check {params.args} threads={threads} > {log} 2>&1"

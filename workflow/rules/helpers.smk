@@ -17,7 +17,7 @@ def pretrain_step(name, strategy, extra, **values):
         return {"pretrain.name": name(wc), "pretrain.out_dir": str(Path(output.model).parent),
                 "pretrain.real_subject_dir": str(Path(input.fit).parent), **{k: v(input) for k, v in values.items()}}
 
-    return step_params("avatarlab.train.pretrain", extra=lambda wc: (f"strategy={strategy(wc)}", *extra(wc)),
+    return step_params("avatarlab.pretrain.train", extra=lambda wc: (f"strategy={strategy(wc)}", *extra(wc)),
                        values=fixed, run_dir=lambda wc: TREE.pretrain(name(wc), ".hydra"))
 
 

@@ -9,7 +9,7 @@ rule synthesize_subject:
         LOG_TREE.subject("{subject}", "synthesize.log"),
     params:
         **step_params(
-            "avatarlab.data.synthetic_subject",
+            "avatarlab.preprocess.synthetic_subject",
             values=lambda wc, input, output: {
                 "subject.name": wc.subject, "subject.preset": PLAN.all_subjects[wc.subject].get("preset", "talking"),
                 "subject.seed": int(PLAN.all_subjects[wc.subject].get("seed", 0)), "subject.video_out": output.video,
@@ -21,7 +21,7 @@ rule synthesize_subject:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.data.synthetic_subject {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.synthetic_subject {params.args} threads={threads} > {log} 2>&1"
 
 
 rule extract_frames:
@@ -40,7 +40,7 @@ rule extract_frames:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.frames {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.frames {params.args} threads={threads} > {log} 2>&1"
 
 
 rule detect_landmarks:
@@ -60,7 +60,7 @@ rule detect_landmarks:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.track_landmarks {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.track_landmarks {params.args} threads={threads} > {log} 2>&1"
 
 
 rule segment_masks:
@@ -80,7 +80,7 @@ rule segment_masks:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.masks {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.masks {params.args} threads={threads} > {log} 2>&1"
 
 
 rule fit_rgb:
@@ -103,7 +103,7 @@ rule fit_rgb:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.fit_rgb {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.fit_rgb {params.args} threads={threads} > {log} 2>&1"
 
 
 rule fit_rgbd:
@@ -125,7 +125,7 @@ rule fit_rgbd:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.fit_rgbd {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.fit_rgbd {params.args} threads={threads} > {log} 2>&1"
 
 
 rule train_interpolator:
@@ -152,7 +152,7 @@ rule train_interpolator:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.interp.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.interp.pretrain {params.args} threads={threads} > {log} 2>&1"
 
 
 rule interpolate_frames:
@@ -174,4 +174,4 @@ rule interpolate_frames:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.preprocess.interp.run {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.preprocess.interp.run {params.args} threads={threads} > {log} 2>&1"

@@ -10,7 +10,7 @@ rule init_tracking:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.tracking init results {output} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.runtime.tracking init results {output} > {log} 2>&1"
 
 
 rule synthesize_portraits:
@@ -20,7 +20,7 @@ rule synthesize_portraits:
     log:
         LOG_TREE.subject("{subject}", "portraits.log"),
     params:
-        **step_params("avatarlab.data.portraits", values=lambda wc, input, output: {
+        **step_params("avatarlab.pretrain.portraits", values=lambda wc, input, output: {
             "subject.name": wc.subject, "subject.images_out": output.images, "subject.truth_out": output.truth},
             run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", "portraits")),
     threads: step_threads("light")
@@ -29,7 +29,7 @@ rule synthesize_portraits:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.data.portraits {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.portraits {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_alpha:
@@ -49,7 +49,7 @@ rule pretrain_alpha:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_beta:
@@ -71,7 +71,7 @@ rule pretrain_beta:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule pretrain_resolution:
@@ -97,7 +97,7 @@ rule pretrain_resolution:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_run:
@@ -118,7 +118,7 @@ rule renderer_run:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule evaluate_pretrained:
@@ -135,7 +135,7 @@ rule evaluate_pretrained:
     log:
         LOG_TREE.pretrain("{model}_eval.log"),
     params:
-        **step_params("avatarlab.evaluate.pretrained", values=lambda wc, input, output: {
+        **step_params("avatarlab.pretrain.evaluate", values=lambda wc, input, output: {
             "evaluate.model": input.model, "evaluate.out": output.report,
             "evaluate.real_subject_dir": str(Path(input.fit).parent)},
             run_dir=lambda wc: TREE.pretrain(wc.model, ".hydra", "eval")),
@@ -145,7 +145,7 @@ rule evaluate_pretrained:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.evaluate {params.args} threads={threads} > {log} 2>&1"
 
 
 rule renderer_experiment:
@@ -159,11 +159,11 @@ rule renderer_experiment:
     log:
         LOG_TREE.report("renderer_experiment.log"),
     params:
-        code=STEPS.code("avatarlab.evaluate.renderer_experiment"),
+        code=STEPS.code("avatarlab.pretrain.renderer_experiment"),
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.renderer_experiment {input.runs:q} --out {output.report:q}"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.renderer_experiment {input.runs:q} --out {output.report:q}"
         " --figure {output.figure:q} > {log} 2>&1"
 
 
@@ -189,7 +189,7 @@ rule control_figure:
     wildcard_constraints:
         figure=control_figure_names(),
     params:
-        **step_params("avatarlab.evaluate.controls", values=lambda wc, input, output: {
+        **step_params("avatarlab.pretrain.controls", values=lambda wc, input, output: {
             "controls.models": list(input.models), "controls.subject_dirs": [str(Path(f).parent) for f in input.fits],
             "controls.control": PLAN.control_figures[wc.figure]["control"], "controls.out": output.grid},
             run_dir=lambda wc: TREE.controls(".hydra", wc.figure)),
@@ -199,4 +199,4 @@ rule control_figure:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.controls {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.controls {params.args} threads={threads} > {log} 2>&1"

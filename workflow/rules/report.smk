@@ -29,7 +29,7 @@ rule report_tables:
     log:
         LOG_TREE.report("report.log"),
     params:
-        **step_params("avatarlab.evaluate.report", values=lambda wc, input, output: {
+        **step_params("avatarlab.report.build", values=lambda wc, input, output: {
             "report.results_dir": str(Path(output.summary).parent.parent),
             "report.out_dir": str(Path(output.summary).parent), "report.final_recipe": PLAN.final_recipe,
             "report.planned": input.planned},
@@ -37,4 +37,4 @@ rule report_tables:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.report {params.args} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.report.build {params.args} > {log} 2>&1"

@@ -16,7 +16,7 @@ rule speech_corpus:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.speech.corpus {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.speech.corpus {params.args} threads={threads} > {log} 2>&1"
 
 
 rule speech_train:
@@ -40,7 +40,7 @@ rule speech_train:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.speech.train {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.speech.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule speak:
@@ -67,7 +67,7 @@ rule speak:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.speech.animate {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.speech.animate {params.args} threads={threads} > {log} 2>&1"
 
 
 rule speech_real_eval:
@@ -91,7 +91,7 @@ rule speech_real_eval:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.speech.real_eval {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.speech.real_eval {params.args} threads={threads} > {log} 2>&1"
 
 
 rule speech_all:

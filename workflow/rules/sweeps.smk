@@ -17,7 +17,7 @@ rule sweep_finetune:
         LOG_TREE.sweep("{sweep}", "{point}.log"),
     params:
         **step_params(
-            "avatarlab.train.finetune",
+            "avatarlab.avatar.finetune",
             extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}", *PLAN.sweep_point(wc.sweep, wc.point).overrides),
             values=lambda wc, input, output: {**PLAN.finetune_values(PLAN.sweep_avatar(wc.sweep), output.model),
                                               "finetune.init_model": input.model, **PLAN.sweep_tags(wc.sweep, wc.point)},
@@ -28,7 +28,7 @@ rule sweep_finetune:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.finetune {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.finetune {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_evaluate_avatar:
@@ -49,7 +49,7 @@ rule sweep_evaluate_avatar:
         LOG_TREE.sweep("{sweep}", "{point}_eval.log"),
     params:
         **step_params(
-            "avatarlab.evaluate.avatar", extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}",),
+            "avatarlab.avatar.evaluate", extra=lambda wc: (f"finetune={PLAN.sweeps[wc.sweep].recipe}",),
             values=lambda wc, input, output: {**PLAN.finetune_values(PLAN.sweep_avatar(wc.sweep), input.model),
                                               "evaluate.model": input.model, "evaluate.out": output.report},
             run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra", "eval")),
@@ -59,7 +59,7 @@ rule sweep_evaluate_avatar:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.avatar {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.avatar.evaluate {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_pretrain:
@@ -77,7 +77,7 @@ rule sweep_pretrain:
         LOG_TREE.sweep("{sweep}", "{point}.log"),
     params:
         **step_params(
-            "avatarlab.train.pretrain",
+            "avatarlab.pretrain.train",
             extra=lambda wc: (f"strategy={PLAN.sweeps[wc.sweep].strategy}", *PLAN.sweep_point(wc.sweep, wc.point).overrides),
             values=lambda wc, input, output: {
                 "pretrain.name": f"{wc.sweep}/{wc.point}", "pretrain.out_dir": str(Path(output.model).parent),
@@ -90,7 +90,7 @@ rule sweep_pretrain:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.train.pretrain {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.train {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_evaluate_pretrained:
@@ -106,7 +106,7 @@ rule sweep_evaluate_pretrained:
     log:
         LOG_TREE.sweep("{sweep}", "{point}_eval.log"),
     params:
-        **step_params("avatarlab.evaluate.pretrained", values=lambda wc, input, output: {
+        **step_params("avatarlab.pretrain.evaluate", values=lambda wc, input, output: {
             "evaluate.model": input.model, "evaluate.out": output.report,
             "evaluate.real_subject_dir": str(Path(input.fit).parent)},
             run_dir=lambda wc: TREE.sweep(wc.sweep, wc.point, ".hydra", "eval")),
@@ -116,7 +116,7 @@ rule sweep_evaluate_pretrained:
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.pretrained {params.args} threads={threads} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.pretrain.evaluate {params.args} threads={threads} > {log} 2>&1"
 
 
 rule sweep_table:
@@ -132,13 +132,13 @@ rule sweep_table:
     log:
         LOG_TREE.sweep("{sweep}", "table.log"),
     params:
-        code=STEPS.code("avatarlab.evaluate.sweep_report"),
+        code=STEPS.code("avatarlab.report.sweep_report"),
         folder=lambda wc: PLAN.sweep_dir(wc.sweep),
         seeds=lambda wc: "" if config.get("sweep_seeds") is None else f"--seeds {int(config['sweep_seeds'])}",
     conda:
         "../envs/avatarlab.yaml"
     shell:
-        "python -m avatarlab.forkserver avatarlab.evaluate.sweep_report --sweep {input.spec:q} --dir {params.folder:q} {params.seeds} > {log} 2>&1"
+        "python -m avatarlab.runtime.forkserver avatarlab.report.sweep_report --sweep {input.spec:q} --dir {params.folder:q} {params.seeds} > {log} 2>&1"
 
 
 for _sweep in PLAN.sweeps:

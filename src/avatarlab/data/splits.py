@@ -6,7 +6,7 @@
   crop).
 - Validation (`validation_frames` / `validation_clips`, not in the dissertation, which fine-tunes a fixed number of
   iterations): the frames just before the test frames, or the clip(s) just before the test clip(s), are held out of
-  training too. Fine-tuning scores its snapshots on them and keeps the best (train/finetune.py), so the stop is chosen
+  training too. Fine-tuning scores its snapshots on them and keeps the best (avatar/finetune.py), so the stop is chosen
   on frames that extrapolate as the test frames do, and the test frames stay unseen.
 - Interpolation experiment (section 4.3): variant b keeps every second training frame (the even ones), c adds back
   the dropped ones re-created by the frame interpolator.
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import InputError
+from avatarlab.runtime.entry import InputError
 
 
 @dataclass

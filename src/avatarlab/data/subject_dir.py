@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from avatarlab.io import atomic_path, write_json
-from avatarlab.safe_load import InputFileError, load_arrays
+from avatarlab.runtime.io import atomic_path, write_json
+from avatarlab.runtime.safe_load import InputFileError, load_arrays
 
 FIT_KEYS = ("shape", "texture", "lighting", "expression", "pose", "K", "R", "t", "fitted")
 SHARED_FIT_KEYS = {"shape": 1, "texture": 1, "lighting": 2}  # dimensions of the shared (video) form

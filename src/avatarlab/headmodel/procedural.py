@@ -22,7 +22,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.spatial import cKDTree
 
 from avatarlab.headmodel.sources import HeadModelData, VertexAlbedo
-from avatarlab.io import atomic_path
+from avatarlab.runtime.io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +142,7 @@ def eye_opening(x, y, side: float):
 # ---------------------------------------------------------------- 68 landmarks in frontal (X, Y), dlib order
 # Image-left (subject's right, -X) first, as in the iBUG 300-W / dlib convention. The table was designed from the
 # feature positions above, then calibrated once to the median response of dlib's 68-point predictor on frontal
-# renders of random heads (seed 1, 60 renders), symmetrised, and frozen; the check in avatarlab.evaluate.dlib_check
+# renders of random heads (seed 1, 60 renders), symmetrised, and frozen; the check in avatarlab.pretrain.dlib_check
 # measures it on other renders. Mouth points stay on their side of the slit (the embedding needs a triangle there).
 _LANDMARK_XY = np.array([
     [-0.0741, 0.0340], [-0.0727, 0.0143], [-0.0702, -0.0052], [-0.0662, -0.0240],
@@ -569,7 +569,7 @@ def load_procedural_head(spec: ProceduralSpec, cache_dir: str | Path | None = No
         return build_procedural_head(spec)
     if "${" in str(cache_dir):  # a head_model group read without the root config: its ${paths.cache} is unresolved
         raise ValueError(f"head model cache_dir {str(cache_dir)!r} holds an unresolved interpolation; compose the "
-                         "whole config (avatarlab.config.compose_config) or pass a real folder")
+                         "whole config (avatarlab.runtime.config.compose_config) or pass a real folder")
     path = Path(cache_dir) / f"procedural_{spec.digest()}.npz"
     if path.is_file():
         try:

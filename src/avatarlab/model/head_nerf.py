@@ -16,7 +16,7 @@ from torch import nn
 from avatarlab.model.cnerf import CNeRF, CNeRFConfig, head_bounds, render_feature_map
 from avatarlab.model.renderer2d import NeuralRenderer2D
 from avatarlab.render.camera import Camera
-from avatarlab.safe_load import load_tensors
+from avatarlab.runtime.safe_load import load_tensors
 
 MODEL_FORMAT = "avatarlab.head_nerf/1"
 

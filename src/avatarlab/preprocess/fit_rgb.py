@@ -23,20 +23,20 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from omegaconf import DictConfig
 
-from avatarlab.config import CPU
 from avatarlab.data.splits import held_out
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import entry_point
-from avatarlab.geometry import procrustes_error_mm
 from avatarlab.headmodel import HeadModel, load_head_model
 from avatarlab.headmodel.flame import rodrigues
-from avatarlab.io import write_json, write_png
+from avatarlab.metrics.alignment import procrustes_error_mm
 from avatarlab.render.camera import Camera, intrinsics
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.lighting import default_lighting
+from avatarlab.runtime.config import CPU
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import write_json, write_png
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'preprocess', 'fit_rgb', 'head_model', 'render')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'preprocess', 'fit_rgb', 'head_model', 'render')  # the config sections this step reads (runtime/entry.py)
 INNER = slice(17, 68)  # the 51 landmarks without the jaw contour (rigid stage)
 
 

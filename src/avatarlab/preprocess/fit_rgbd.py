@@ -19,18 +19,18 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from scipy.spatial import cKDTree
 
-from avatarlab.entry import entry_point
-from avatarlab.geometry import procrustes_error_mm, similarity_transform
 from avatarlab.headmodel import HeadModel, load_head_model
-from avatarlab.io import write_json
+from avatarlab.metrics.alignment import procrustes_error_mm, similarity_transform
 from avatarlab.render.camera import Camera
 from avatarlab.render.head_renderer import HeadRenderer
 from avatarlab.render.lighting import default_lighting
 from avatarlab.render.mesh_renderer import vertex_normals
-from avatarlab.safe_load import InputFileError, load_arrays
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import write_json
+from avatarlab.runtime.safe_load import InputFileError, load_arrays
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'preprocess', 'fit_rgbd', 'head_model')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'preprocess', 'fit_rgbd', 'head_model')  # the config sections this step reads (runtime/entry.py)
 RELIABLE = np.arange(17, 68)  # inner landmarks: the jaw contour lies on the silhouette, where depth is unreliable
 
 

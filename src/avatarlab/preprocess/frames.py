@@ -20,12 +20,12 @@ import numpy as np
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from avatarlab.entry import InputError, entry_point
-from avatarlab.io import write_json
 from avatarlab.preprocess.crop import crop_and_resize, frame_crops
+from avatarlab.runtime.entry import InputError, entry_point
+from avatarlab.runtime.io import write_json
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'preprocess')  # the config sections this step reads (runtime/entry.py)
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mpg", ".mpeg", ".mov", ".mkv", ".webm"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
 MIN_SIDE = 16  # pixels: below this an input frame is refused (no face to find; the crop would be all padding)

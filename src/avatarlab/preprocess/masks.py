@@ -15,11 +15,11 @@ import numpy as np
 from tqdm import tqdm
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import entry_point
-from avatarlab.io import atomic_path, write_json
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import atomic_path, write_json
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'preprocess')  # the config sections this step reads (runtime/entry.py)
 
 
 def seed_mask(shape, landmarks: np.ndarray) -> np.ndarray:

@@ -12,13 +12,13 @@ import numpy as np
 from tqdm import tqdm
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import InputError, entry_point
-from avatarlab.io import atomic_path, write_json
 from avatarlab.preprocess.crop import crop_points
 from avatarlab.preprocess.landmarks import _dlib_models, normalised_mean_error
+from avatarlab.runtime.entry import InputError, entry_point
+from avatarlab.runtime.io import atomic_path, write_json
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'preprocess')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'preprocess')  # the config sections this step reads (runtime/entry.py)
 
 
 def track(frames: np.ndarray, upsample: int):

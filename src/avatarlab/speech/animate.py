@@ -18,16 +18,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from avatarlab.apps.avatar import load_avatar, load_fit, select, to_uint8
-from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
-from avatarlab.io import atomic_path, write_json, write_png, write_video
+from avatarlab.model.avatar import load_avatar, load_fit, select, to_uint8
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import atomic_path, write_json, write_png, write_video
 from avatarlab.speech.features import FeatureSpec, read_wav, windows, write_wav
 from avatarlab.speech.models import load_speech_model
 from avatarlab.speech.visemes import NAMES, viseme_parameters
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'head_model', 'speech', 'apps')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'head_model', 'speech', 'apps')  # the config sections this step reads (runtime/entry.py)
 
 
 

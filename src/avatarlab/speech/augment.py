@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import butter, fftconvolve, lfilter
 
-from avatarlab.errors import ConfigError
+from avatarlab.runtime.errors import ConfigError
 
 RANGES = ("lowpass_hz", "highpass_hz", "rt60_s", "drr_db", "snr_db", "gain")
 

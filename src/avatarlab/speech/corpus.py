@@ -21,9 +21,9 @@ import torch
 from omegaconf import DictConfig
 from scipy.ndimage import gaussian_filter1d
 
-from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
-from avatarlab.io import atomic_path, write_json
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import atomic_path, write_json
 from avatarlab.speech.features import resample
 from avatarlab.speech.festival import Festival, is_festival_voice
 from avatarlab.speech.tts import Espeak
@@ -37,7 +37,7 @@ from avatarlab.speech.visemes import (
 )
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (runtime/entry.py)
 
 GRID_WORDS = [["bin", "lay", "place", "set"], ["blue", "green", "red", "white"], ["at", "by", "in", "with"],
               list("abcdefghijklmnopqrstuvxyz"),

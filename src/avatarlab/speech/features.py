@@ -51,7 +51,7 @@ def read_wav(path: str | Path) -> tuple[np.ndarray, int]:
 
 
 def write_wav(path: str | Path, audio: np.ndarray, rate: int) -> None:
-    from avatarlab.io import atomic_path
+    from avatarlab.runtime.io import atomic_path
 
     pcm = (np.clip(audio, -1, 1) * 32767).round().astype(np.int16)
     with atomic_path(path) as tmp:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from avatarlab.errors import ConfigError
+from avatarlab.runtime.errors import ConfigError
 from avatarlab.speech.tts import Utterance
 
 PREFIX = "festival:"

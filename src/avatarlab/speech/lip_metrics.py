@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from avatarlab.geometry import similarity_transform
+from avatarlab.metrics.alignment import similarity_transform
 
 STABLE = list(range(17, 48))  # brows, nose, eyes
 LIPS = list(range(48, 68))

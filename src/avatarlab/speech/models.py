@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from avatarlab.safe_load import load_tensors
+from avatarlab.runtime.safe_load import load_tensors
 
 
 class AudioToVisemes(nn.Module):

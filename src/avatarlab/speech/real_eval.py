@@ -33,11 +33,11 @@ import cv2
 import numpy as np
 import torch
 
-from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
-from avatarlab.io import write_json
+from avatarlab.metrics.seeds import gain_verdict, mean_ci, signed_range
 from avatarlab.preprocess.landmarks import detect_landmarks
-from avatarlab.seed_stats import gain_verdict, mean_ci, signed_range
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import write_json
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.grid import align_phonemes, read_audio, read_frames, sentence
 from avatarlab.speech.lip_metrics import align_to, correlation, lip_error_percent, motion_only, mouth_opening
@@ -46,7 +46,7 @@ from avatarlab.speech.tts import Espeak
 from avatarlab.speech.visemes import frame_labels, viseme_basis
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'head_model', 'speech')  # the config sections this step reads (runtime/entry.py)
 FPS = 25.0
 DETECT_WIDTH = 640  # frames wider than this are detected at this width (landmarks scaled back): dlib's speed
 

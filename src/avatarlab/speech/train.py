@@ -18,19 +18,19 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from avatarlab.config import CPU, autocast, grad_scaler
-from avatarlab.entry import entry_point
 from avatarlab.headmodel import load_head_model
-from avatarlab.io import atomic_path, write_json
+from avatarlab.runtime.config import CPU, autocast, grad_scaler
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import atomic_path, write_json
+from avatarlab.runtime.tracking import start_run
 from avatarlab.speech.augment import augment, check_settings
 from avatarlab.speech.features import FeatureSpec, windows
 from avatarlab.speech.lip_metrics import align_to, baseline_scores, lip_error_percent, motion_only
 from avatarlab.speech.models import AudioToVisemes, PhonemeWindowMLP, speech_loss
 from avatarlab.speech.visemes import NAMES, PHONEMES, frontal_landmarks, phoneme_to_viseme_matrix, viseme_basis
-from avatarlab.tracking import start_run
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'amp', 'head_model', 'speech', 'tracking')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'amp', 'head_model', 'speech', 'tracking')  # the config sections this step reads (runtime/entry.py)
 
 
 

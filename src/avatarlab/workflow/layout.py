@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path, PurePosixPath
 
-from avatarlab.io import atomic_path
+from avatarlab.runtime.io import atomic_path
 
 VARIANTS = ("a", "b", "c")  # a: all training frames; b: every second dropped; c: b + the interpolated frames
 _FOLDER = re.compile(r"^(?P<init>.+?)(?:_frames(?P<variant>[bc]))?(?:_seed(?P<seed>[1-9][0-9]*))?$")

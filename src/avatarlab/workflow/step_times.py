@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from avatarlab.errors import ConfigError
+from avatarlab.runtime.errors import ConfigError
 
 _STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]\s*$")
 _RULE = re.compile(r"^(?:local)?(?:rule|checkpoint) (\w+):\s*$")

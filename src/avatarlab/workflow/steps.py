@@ -1,6 +1,6 @@
 """What a workflow step depends on and how it is called.
 
-Every entry module declares the config sections it reads (`READS = (...)`, see avatarlab/entry.py). A rule gets three
+Every entry module declares the config sections it reads (`READS = (...)`, see avatarlab/runtime/entry.py). A rule gets three
 params (workflow/rules/common.smk `step_params`):
 - `settings`: those sections, resolved (YAML) - a function of the wildcards only, so that Snakemake records it and a
   change to any of them, and to nothing else, reruns the step (params computed from input or output paths count as
@@ -22,7 +22,7 @@ import sys
 from functools import lru_cache
 from pathlib import Path
 
-from avatarlab.provenance import SRC, code_digest, module_path
+from avatarlab.runtime.provenance import SRC, code_digest, module_path
 
 
 def interpreter_first_on_path() -> None:
@@ -110,7 +110,7 @@ class Steps:
     def compose(self, extra: tuple[str, ...] = ()):
         from hydra import compose, initialize_config_dir
 
-        from avatarlab.schema import validate
+        from avatarlab.runtime.schema import validate
 
         with initialize_config_dir(config_dir=str(self.conf_dir), version_base="1.3"):
             cfg = compose(config_name="config", overrides=[*self.base, *self.overrides, *extra])
@@ -156,7 +156,7 @@ class Steps:
         """What a module's step depends on for one config variant: its settings and its fixed overrides."""
         from omegaconf import OmegaConf
 
-        from avatarlab.entry import step_settings
+        from avatarlab.runtime.entry import step_settings
 
         reads = declared_reads(module)
         settings = OmegaConf.to_yaml(OmegaConf.create(step_settings(self.compose(extra), reads)))

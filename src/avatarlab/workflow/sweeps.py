@@ -20,7 +20,7 @@ from pathlib import Path
 
 import yaml
 
-from avatarlab.errors import ConfigError
+from avatarlab.runtime.errors import ConfigError
 
 SWEEP_DIR = Path(__file__).resolve().parents[3] / "conf" / "sweep"
 STEPS = {"finetune": ("subject", "init"), "pretrain": ("strategy",)}

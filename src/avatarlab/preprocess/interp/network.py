@@ -143,7 +143,7 @@ class XVFILite(nn.Module):
 
 def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
     """Weights only (tensors and plain values), written atomically."""
-    from avatarlab.io import atomic_path
+    from avatarlab.runtime.io import atomic_path
 
     with atomic_path(Path(path)) as tmp:
         torch.save({"format": MODEL_FORMAT, "width": model.width, "scales": model.scales, "flow_init": model.flow_init,
@@ -153,7 +153,7 @@ def save_interpolator(path: Path, model: XVFILite, iterations: int) -> None:
 
 def load_interpolator(path: str | Path, device: torch.device | str = "cpu") -> XVFILite:
     """A model.pt written by save_interpolator -> the network in eval mode; anything else stops with one line."""
-    from avatarlab.safe_load import load_tensors
+    from avatarlab.runtime.safe_load import load_tensors
 
     content = load_tensors(Path(path), "a frame interpolator (model.pt)")
     if not isinstance(content, dict) or content.get("format") != MODEL_FORMAT:

@@ -18,8 +18,6 @@ import numpy as np
 import torch
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import entry_point
-from avatarlab.io import write_json
 from avatarlab.preprocess.interp.network import save_interpolator
 from avatarlab.preprocess.interp.training import (
     choose_still_flow,
@@ -29,9 +27,11 @@ from avatarlab.preprocess.interp.training import (
     training_triplets,
     validation_split,
 )
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import write_json
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'amp', 'interp')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'amp', 'interp')  # the config sections this step reads (runtime/entry.py)
 
 
 def gather(subject_dirs, strides, validation_every: int = 0,

@@ -24,9 +24,8 @@ import numpy as np
 import torch
 
 from avatarlab.data.subject_dir import SubjectDir
-from avatarlab.entry import entry_point
-from avatarlab.io import atomic_path, write_json, write_png
-from avatarlab.metrics import STLPIPS, psnr_per_image
+from avatarlab.metrics.quality import STLPIPS, psnr_per_image
+from avatarlab.metrics.seeds import gain_verdict, mean_ci
 from avatarlab.preprocess.interp.network import load_interpolator
 from avatarlab.preprocess.interp.optical_flow import interpolate_farneback
 from avatarlab.preprocess.interp.training import (
@@ -36,10 +35,11 @@ from avatarlab.preprocess.interp.training import (
     to_tensor,
     training_triplets,
 )
-from avatarlab.seed_stats import gain_verdict, mean_ci
+from avatarlab.runtime.entry import entry_point
+from avatarlab.runtime.io import atomic_path, write_json, write_png
 
 log = logging.getLogger(__name__)
-READS = ('seed', 'amp', 'preprocess', 'interp', 'evaluate')  # the config sections this step reads (avatarlab/entry.py)
+READS = ('seed', 'amp', 'preprocess', 'interp', 'evaluate')  # the config sections this step reads (runtime/entry.py)
 
 
 def quality(pred: torch.Tensor, target: torch.Tensor, st_lpips=None) -> dict[str, float | None]:

@@ -13,12 +13,12 @@ import torch
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from avatarlab.config import CPU, autocast, grad_scaler
-from avatarlab.io import atomic_path
 from avatarlab.preprocess.interp.network import XVFILite
-from avatarlab.provenance import code_digest
-from avatarlab.provenance import fingerprint as provenance_fingerprint
-from avatarlab.safe_load import load_tensors
+from avatarlab.runtime.config import CPU, autocast, grad_scaler
+from avatarlab.runtime.io import atomic_path
+from avatarlab.runtime.provenance import code_digest
+from avatarlab.runtime.provenance import fingerprint as provenance_fingerprint
+from avatarlab.runtime.safe_load import load_tensors
 
 log = logging.getLogger(__name__)
 

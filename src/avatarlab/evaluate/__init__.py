@@ -1,1 +1,0 @@
-"""Evaluation: metrics, tables, figures and experiment summaries."""

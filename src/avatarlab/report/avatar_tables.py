@@ -1,0 +1,238 @@
+"""The report's avatar tables: the final avatars over seeds with CIs, alpha1 vs alpha2 (also paired by seed), the
+beta ablation and the stage-2 pairs with their noise verdicts, the interpolation experiment, and table 2 beside the
+published rows."""
+from __future__ import annotations
+
+from avatarlab.metrics.seeds import mean_ci, paired_difference, single_run_threshold
+from avatarlab.report.claims import PUBLISHED_INTERP_GAIN_DB
+from avatarlab.report.published import PUBLISHED_TABLE2
+from avatarlab.report.runs import seed_noise, seeded_runs
+from avatarlab.report.table import Headline, Table, gain_columns, not_beating
+
+SEEDED = ("psnr", "gain", "ssim", "st_lpips")
+
+
+def seeded_row(runs: list[dict], part: str = "all") -> dict:
+    """One table row for the seeds of an avatar: the mean of each number over seeds, `seeds`, and the 95 % CI
+    half-width of PSNR, gain, SSIM and ST-LPIPS (None with one seed)."""
+    rows = [avatar_row(a, part) for a in runs]
+    row = dict(rows[0])
+    for key, value in rows[0].items():
+        if isinstance(value, int) and not isinstance(value, bool) and all(r.get(key) == value for r in rows):
+            continue  # a count the seeds share (test frames) stays a count
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            row[key] = mean_ci(r.get(key) for r in rows)[0]
+    for key in SEEDED:
+        row[key], row[f"{key}_ci95"], _ = mean_ci(r.get(key) for r in rows)
+    row["seeds"] = len(rows)
+    return row
+
+
+AVATAR_COLUMNS = ["subject", "recipe", "init", "variant", "subset", "test_frames", "psnr", "best_baseline",
+                  "baseline_psnr", "gain", "colour_matched_gain", "ssim", "st_lpips", "lpips", "face_detection_rate",
+                  "landmark_nme", "identity_similarity", "train_seconds"]
+
+
+SEEDED_COLUMNS = ["seeds", "psnr_ci95", "gain_ci95", "ssim_ci95", "st_lpips_ci95"]
+
+
+def avatar_row(avatar: dict, part: str = "all") -> dict:
+    ev = avatar["eval"]
+    scores = ev[part]
+    m = scores["model"]
+    g = gain_columns(scores, "psnr")
+    return {"subject": avatar["subject"], "recipe": avatar["recipe"], "init": avatar["init"],
+            "variant": avatar["variant"], "subset": part, "test_frames": scores["frames"], "psnr": m["psnr"],
+            "best_baseline": g["best_baseline"], "baseline_psnr": g["baseline"], "gain": g["gain"],
+            "colour_matched_gain": gain_columns(scores, "psnr_head_colour")["gain"], "ssim": m["ssim"],
+            "st_lpips": m.get("st_lpips"), "lpips": m.get("lpips"),
+            "face_detection_rate": m.get("face_detection_rate"), "landmark_nme": m.get("landmark_nme"),
+            "identity_similarity": m.get("identity_similarity"), "train_seconds": avatar["train"]["train_seconds"]}
+
+
+def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
+    table = Table("final_avatars", "Final-recipe avatars on their test frames, beside trivial baselines "
+                  "(mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS + ["split"],
+                  "Baselines predict each test frame from the training frames alone (their mean; the last one; the "
+                  "one nearest in fitted expression, jaw, neck and camera), composited into the same true mask. "
+                  "face_detection_rate / landmark_nme / identity_similarity: dlib on the renders (NME against the "
+                  "frame's tracked landmarks, outer-eye normalised). split: last_frames (INSTA protocol) or "
+                  "held_out_clips (every frame of a clip the avatar never saw). colour_matched_gain: a diagnostic, "
+                  "the head-region PSNR gain over the best baseline when every prediction (model and baselines "
+                  "alike) first takes each test frame's mean colour: structure without a recording's overall "
+                  "colour, which a clip never seen can have its own of.",
+                  shown=["subject", "seeds", "test_frames", "psnr", "baseline_psnr", "gain", "ssim", "st_lpips"],
+                  headline=Headline("psnr", ("subject",), each=True))
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
+        runs = seeded_runs(avatars, subject, "final", final)
+        if runs:
+            table.add(**seeded_row(runs), split=runs[0]["eval"].get("split"))
+    base = Table("final_avatar_baselines", "The same test frames, scored for each trivial baseline",
+                 ["subject", "predictor", "psnr", "psnr_head", "psnr_head_colour", "ssim", "st_lpips",
+                  "face_detection_rate", "landmark_nme", "identity_similarity"],
+                 "Seed 0's avatar (the baselines do not depend on the seed). psnr_head_colour: head-region PSNR "
+                 "with each frame's mean colour matched to the truth's first.",
+                 shown=["subject", "predictor", "psnr", "psnr_head", "ssim", "st_lpips", "face_detection_rate",
+                        "identity_similarity"])
+    for a in avatars:
+        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
+            part = a["eval"]["all"]
+            for name, scores in [("model", part["model"])] + sorted(part["baselines"].items()):
+                base.add(subject=a["subject"], predictor=name, **{k: scores.get(k) for k in base.columns[2:]})
+    table.note += " " + not_beating(table, ("subject",))
+    return table, base
+
+
+def alpha_table(avatars: list[dict]) -> Table:
+    table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
+                  "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,
+                  "The mouth-open subset = the test frames with the widest fitted jaw opening (the dissertation: 30 "
+                  "per subject). alpha2 adds the mouth interior in its last pretraining phase.",
+                  shown=["subject", "init", "subset", "seeds", "psnr", "gain", "ssim", "st_lpips"],
+                  headline=Headline("psnr", ("subject", "init", "subset"), each=True))
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
+        for init in ("alpha1", "alpha2"):
+            runs = seeded_runs(avatars, subject, "base", init)
+            for part in ("all", "mouth_open") if runs else ():
+                table.add(**seeded_row(runs, part))
+    table.note += " " + not_beating(table, ("subject", "init", "subset"))
+    return table
+
+
+def alpha_paired_table(avatars: list[dict]) -> Table:
+    """alpha2 - alpha1, paired by seed (same seed: same batches and offsets), with the verdict on the noise."""
+    table = Table("alpha_paired", "alpha2 minus alpha1, paired by seed: is the difference larger than the "
+                  "seed-to-seed noise?", ["subject", "subset", "metric", "seeds", "difference", "ci95", "verdict"],
+                  "difference = mean over seeds of (alpha2 - alpha1) with the same seed; the verdict says whether its "
+                  "95 % confidence interval (Student's t) excludes zero. Higher is better for PSNR and SSIM, lower "
+                  "for ST-LPIPS.", ci_columns={"difference": "ci95"})
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "base"}):
+        one, two = (seeded_runs(avatars, subject, "base", i) for i in ("alpha1", "alpha2"))
+        if not one or not two:
+            continue
+        for part in ("all", "mouth_open"):
+            for metric in ("psnr", "ssim", "st_lpips"):
+                a = {r["seed"]: r["eval"][part]["model"].get(metric) for r in one}
+                b = {r["seed"]: r["eval"][part]["model"].get(metric) for r in two}
+                if any(v is None for v in (*a.values(), *b.values())):
+                    continue
+                d = paired_difference(a, b)
+                table.add(subject=subject, subset=part, metric=metric, seeds=d["n"], difference=d["mean"],
+                          ci95=d["ci95"], verdict=d["verdict"])
+    return table
+
+
+def beta_table(avatars: list[dict]) -> Table:
+    sd, dof = seed_noise(avatars)
+    threshold = single_run_threshold(sd)
+    table = Table("beta_ablation", "Avatars fine-tuned (base recipe) from beta1-beta6 continued from alpha1 / alpha2 "
+                  "(dissertation figures 39-42)",
+                  AVATAR_COLUMNS + ["mouth_open_psnr", "below_best_db", "differs_from_best"],
+                  "beta1: real only; beta2: + z-augmentation; beta3: p=0.25; beta4: p 0.25->0; beta5: beta3 + z-aug; "
+                  "beta6: beta4 + z-aug (the final recipe, from alpha2). One seed each: below_best_db = the best "
+                  "beta's PSNR (same subject) minus this row's; differs_from_best says whether that exceeds the "
+                  "seed-to-seed noise, 1.96 x sqrt(2) x the pooled seed-to-seed SD of test PSNR measured on the "
+                  + (f"seeded avatars ({sd:.3f} dB, {dof} degrees of freedom: threshold {threshold:.2f} dB)."
+                     if sd is not None else "seeded avatars (none here: no verdict)."),
+                  shown=["subject", "init", "psnr", "gain", "mouth_open_psnr", "below_best_db", "differs_from_best",
+                         "st_lpips"],
+                  headline=Headline("psnr", ("subject", "init"), gain_ci=None))
+    betas = [a for a in avatars if a["recipe"] == "base" and "_from_" in a["init"] and a["variant"] == "a"
+             and a["seed"] == 0]
+    ablated = {s for s in {a["subject"] for a in betas} if sum(a["subject"] == s for a in betas) > 1}
+    best = {s: max(a["eval"]["all"]["model"]["psnr"] for a in betas if a["subject"] == s) for s in ablated}
+    for a in sorted(betas, key=lambda r: (r["subject"], r["init"].split("_from_")[-1], r["init"])):
+        if a["subject"] in ablated:  # subjects with the beta ablation (not a lone avatar of another experiment)
+            below = best[a["subject"]] - a["eval"]["all"]["model"]["psnr"]
+            differs = None if threshold is None else ("yes" if below > threshold else "no (within noise)")
+            table.add(**avatar_row(a), mouth_open_psnr=a["eval"]["mouth_open"]["model"]["psnr"], below_best_db=below,
+                      differs_from_best=differs)
+    table.note += " " + not_beating(table, ("subject", "init"))
+    return table
+
+
+#: the stage-2 comparisons of figures 44-47: (label, treated, control) per alpha family
+STAGE2_PAIRS = [("z-augmentation (beta2 vs beta1)", "beta2", "beta1"),
+                ("z-augmentation (beta5 vs beta3)", "beta5", "beta3"),
+                ("z-augmentation (beta6 vs beta4)", "beta6", "beta4"),
+                ("synthetic share 0.25 (beta3 vs beta1)", "beta3", "beta1"),
+                ("decaying share 0.25->0 (beta4 vs beta1)", "beta4", "beta1"),
+                ("decaying vs constant share (beta4 vs beta3)", "beta4", "beta3"),
+                ("continuing on real images (beta1 vs its alpha)", "beta1", "alpha")]
+
+
+def stage2_table(avatars: list[dict]) -> Table:
+    """Figures 44-47's pairs (z-augmentation, the schedule, continuing on real images) as differences of test PSNR
+    on all and mouth-open frames, each with the verdict against the seed-to-seed noise."""
+    sd, _ = seed_noise(avatars)
+    threshold = single_run_threshold(sd)
+    table = Table("stage2_comparisons", "Stage-2 comparisons (dissertation figures 44-47): treated minus control, "
+                  "avatars fine-tuned with the base recipe", ["subject", "family", "comparison", "all_diff_db",
+                                                              "mouth_open_diff_db", "verdict"],
+                  "One seed per model: a difference counts only above " +
+                  (f"{threshold:.2f} dB (1.96 x sqrt(2) x the pooled seed-to-seed SD)." if threshold is not None
+                   else "the seed noise, which this run did not measure (no verdict)."))
+    runs = {(a["subject"], a["init"]): a["eval"] for a in avatars
+            if a["recipe"] == "base" and a["variant"] == "a" and a["seed"] == 0}
+    for subject in sorted({s for s, _ in runs}):
+        for alpha in ("alpha1", "alpha2"):
+            for label, treated, control in STAGE2_PAIRS:
+                t_name = f"{treated}_from_{alpha}"
+                c_name = alpha if control == "alpha" else f"{control}_from_{alpha}"
+                if (subject, t_name) not in runs or (subject, c_name) not in runs:
+                    continue
+                t, c = runs[(subject, t_name)], runs[(subject, c_name)]
+                diff = t["all"]["model"]["psnr"] - c["all"]["model"]["psnr"]
+                mouth = t["mouth_open"]["model"]["psnr"] - c["mouth_open"]["model"]["psnr"]
+                verdict = (None if threshold is None else
+                           "within noise" if abs(diff) <= threshold else ("better" if diff > 0 else "worse"))
+                table.add(subject=subject, family=alpha, comparison=label, all_diff_db=diff, mouth_open_diff_db=mouth,
+                          verdict=verdict)
+    return table
+
+
+def interp_table(avatars: list[dict], final: str) -> Table:
+    table = Table("interpolation", "Interpolation experiment (dissertation figure 54): (a) all frames, (b) every "
+                  "second frame dropped, (c) (b) + interpolated frames (base recipe)",
+                  AVATAR_COLUMNS + ["gain_c_over_b_db"],
+                  f"Published: (c) is {PUBLISHED_INTERP_GAIN_DB} dB PSNR above (b). Variant (c)'s new frames come from "
+                  "the XVFI-style network; their parameters are the neighbours' mean (no fit of the new frame).",
+                  shown=["subject", "variant", "test_frames", "psnr", "best_baseline", "gain", "gain_c_over_b_db",
+                         "st_lpips"],
+                  headline=Headline("psnr", ("subject", "variant"), gain_ci=None, each=True))
+    by_subject: dict[str, dict] = {}
+    for a in avatars:
+        if a["recipe"] == "base" and a["init"] == final and a["seed"] == 0:
+            by_subject.setdefault(a["subject"], {})[a["variant"]] = a
+    for subject, variants in sorted(by_subject.items()):
+        if not ({"b", "c"} & set(variants)):
+            continue
+        gain = None
+        if "b" in variants and "c" in variants:
+            gain = variants["c"]["eval"]["all"]["model"]["psnr"] - variants["b"]["eval"]["all"]["model"]["psnr"]
+        for v in ("a", "b", "c"):
+            if v in variants:
+                table.add(**avatar_row(variants[v]), gain_c_over_b_db=gain if v == "c" else None)
+    table.note += " " + not_beating(table, ("subject", "variant"))
+    return table
+
+
+def comparison_table(avatars: list[dict], final: str, scale: str) -> Table:
+    table = Table("table2_comparison", "Table 2: published methods (dissertation) beside this run",
+                  ["source", "method", "data", "psnr", "ssim", "lpips", "st_lpips", "best_baseline_psnr",
+                   "creation_time"],
+                  "Rows marked 'published' are copied from the dissertation (INSTA videos, 256x256, RTX 4090); rows "
+                  f"marked 'this run' come from this workflow at scale '{scale}' on the data named, on CPU, each "
+                  "beside what its best trivial baseline scores on the same frames. They are not the same data or "
+                  "budget and are shown side by side only as labelled. LPIPS of this run is LPIPS-VGG where its "
+                  "backbone was given, else missing; ST-LPIPS is another metric (shift-tolerant, AlexNet).")
+    for row in PUBLISHED_TABLE2:
+        table.add(source="published", data="INSTA, 256x256", **row)
+    for a in avatars:
+        if a["recipe"] == "final" and a["init"] == final and a["variant"] == "a" and a["seed"] == 0:
+            m, g = a["eval"]["all"]["model"], a["eval"]["all"]["gain"]["psnr"]
+            table.add(source="this run", method=f"avatarlab ({final})", data=f"{a['subject']}, {scale}",
+                      psnr=m["psnr"], ssim=m["ssim"], lpips=m.get("lpips"), st_lpips=m.get("st_lpips"),
+                      best_baseline_psnr=f"{g['baseline']:.2f} ({g['best_baseline']})",
+                      creation_time=f"{a['train']['train_seconds']:.0f} s fine-tuning (CPU)")
+    return table

@@ -1,0 +1,1 @@
+"""The training loop pretraining and fine-tuning share, and its resumable checkpoints."""
