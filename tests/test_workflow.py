@@ -7,6 +7,7 @@ later run would retrain the pretraining chain); everything before them reads the
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -55,13 +56,26 @@ def smoke_run(workdir):
 
 
 def test_dry_run_lists_the_jobs(tmp_path):
-    planned = jobs_planned(snakemake(tmp_path, "-n"))
+    dry = snakemake(tmp_path, "-n")
+    planned = jobs_planned(dry)
     assert planned["pretrain_alpha"] == 2 and planned["pretrain_beta"] == 12 and planned["evaluate_pretrained"] == 16
     # the default obama subject's clips are a path relative to the work directory: absent here, left out
     # one rule makes every avatar: 14 base + 2 final + 1 (variant a) ... + seed 1 of the final recipe (two synthetic
     # subjects) and of the alpha1 / alpha2 avatars of synth_talk + the interpolation variants b and c of both
     assert planned["finetune_avatar"] == (14 + 2 + 1) + (2 + 2) + 4 and planned["evaluate_avatar"] == 17 + 4 + 4
     assert "finetune_avatar_seed" not in planned and "finetune_interp_variant" not in planned
+    # the chain every model waits for starts first (workflow/targets.py Plan.PRIORITIES); speech keeps priority 0
+    priorities, rule, wildcards = {}, None, ""
+    for line in dry.stdout.splitlines():
+        if m := re.match(r"^(?:local)?rule (\w+):", line):
+            rule, wildcards = m.group(1), ""
+        elif "wildcards:" in line:
+            wildcards = line.split("wildcards:")[1].strip()
+        elif "priority:" in line:
+            priorities[(rule, wildcards)] = int(line.split("priority:")[1])
+    assert priorities[("fit_rgb", "subject=portraits")] > priorities[("pretrain_alpha", "alpha=alpha1")] > \
+        priorities[("pretrain_beta", "beta=beta6, alpha=alpha2")] > priorities[("fit_rgb", "subject=synth_talk")]
+    assert not any(r.startswith("speech") for r, _ in priorities), priorities
 
 
 def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):

@@ -185,6 +185,22 @@ def test_the_plans_rule_values():
     assert tags["tracking.point"] == point.name and tags["tracking.point_overrides"] == " ".join(point.overrides)
 
 
+def test_the_chain_every_model_waits_for_starts_first():
+    """Snakemake's priorities follow the chain: the pretraining image set's preprocessing, alpha, beta, the other
+    subjects' preprocessing, the final recipe's fine-tunes, the base ones; speech, interpolation and scores last
+    (test_workflow's dry run checks that the jobs carry them)."""
+    config = yaml.safe_load((REPO / "workflow" / "config.yaml").read_text())
+    config.update(scale="smoke", subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
+    plan = Plan(config, sweep_dir=REPO / "conf" / "sweep")
+    real = plan.real_images["name"]
+    order = [plan.step_priority("fit_rgb", real), plan.step_priority("pretrain_alpha"),
+             plan.step_priority("pretrain_beta"), plan.step_priority("fit_rgb", "synth_talk"),
+             plan.step_priority("finetune_avatar", recipe="final"), plan.step_priority("finetune_avatar", recipe="base"),
+             plan.step_priority("speech_real_eval")]
+    assert order == sorted(order, reverse=True) and len(set(order)) == len(order), order
+    assert plan.step_priority("synthesize_portraits") == plan.step_priority("detect_landmarks", real) == order[0]
+
+
 def test_common_smk_only_wires(tmp_path):
     text = (REPO / "workflow" / "rules" / "common.smk").read_text()
     assert "import re" not in text and "ast." not in text, "no source scanning in the Snakefile"

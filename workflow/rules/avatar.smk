@@ -26,6 +26,7 @@ rule finetune_avatar:
                                               **({"finetune.interpolated": input.interpolated[0]}
                                                  if input.interpolated else {})},
             run_dir=lambda wc: TREE.avatar(wc.subject, wc.recipe, wc.avatar, ".hydra")),
+    priority: lambda wc: PLAN.step_priority("finetune_avatar", recipe=wc.recipe)
     threads: step_threads("finetune")
     resources:
         **step_resources("finetune"),

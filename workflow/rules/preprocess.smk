@@ -34,6 +34,7 @@ rule extract_frames:
         LOG_TREE.subject("{subject}", "frames.log"),
     params:
         **subject_step("avatarlab.preprocess.frames", "frames", **{"preprocess.inputs": lambda i, o: list(i.media)}),
+    priority: lambda wc: PLAN.step_priority("extract_frames", wc.subject)
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -54,6 +55,7 @@ rule detect_landmarks:
         LOG_TREE.subject("{subject}", "landmarks.log"),
     params:
         **subject_step("avatarlab.preprocess.track_landmarks", "landmarks"),
+    priority: lambda wc: PLAN.step_priority("detect_landmarks", wc.subject)
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -74,6 +76,7 @@ rule segment_masks:
         LOG_TREE.subject("{subject}", "masks.log"),
     params:
         **subject_step("avatarlab.preprocess.masks", "masks"),
+    priority: lambda wc: PLAN.step_priority("segment_masks", wc.subject)
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -97,6 +100,7 @@ rule fit_rgb:
         LOG_TREE.subject("{subject}", "fit_rgb.log"),
     params:
         **subject_step("avatarlab.preprocess.fit_rgb", "fit_rgb"),
+    priority: lambda wc: PLAN.step_priority("fit_rgb", wc.subject)
     threads: step_threads("fit")
     resources:
         **step_resources("fit"),

@@ -23,6 +23,7 @@ rule synthesize_portraits:
         **step_params("avatarlab.pretrain.portraits", values=lambda wc, input, output: {
             "subject.name": wc.subject, "subject.images_out": output.images, "subject.truth_out": output.truth},
             run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", "portraits")),
+    priority: PLAN.step_priority("synthesize_portraits")
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -43,6 +44,7 @@ rule pretrain_alpha:
         LOG_TREE.pretrain("{alpha}.log"),
     params:
         **pretrain_step(lambda wc: wc.alpha, lambda wc: wc.alpha, lambda wc: ()),
+    priority: PLAN.step_priority("pretrain_alpha")
     threads: step_threads("train")
     resources:
         **step_resources("train"),
@@ -65,6 +67,7 @@ rule pretrain_beta:
     params:
         **pretrain_step(lambda wc: f"{wc.beta}_from_{wc.alpha}", lambda wc: wc.beta, lambda wc: (),
                         **{"pretrain.init_model": lambda i: i.parent}),
+    priority: PLAN.step_priority("pretrain_beta")
     threads: step_threads("train")
     resources:
         **step_resources("train"),
@@ -91,6 +94,7 @@ rule pretrain_resolution:
         **pretrain_step(lambda wc: wc.tier, lambda wc: PLAN.final_strategy(),
                         lambda wc: PLAN.tier(wc.tier).overrides(),
                         **{"pretrain.init_model": lambda i: i.parent}),
+    priority: PLAN.step_priority("pretrain_resolution")
     threads: step_threads("train")
     resources:
         **step_resources("train"),

@@ -184,6 +184,25 @@ class Plan:
                 values[target] = kind(spec[key])
         return values
 
+    #: Snakemake `priority` of a step's jobs (higher starts first among the ready ones). Every model waits for the
+    #: chain pretraining image set -> alpha -> beta, so it goes first, then what the avatars wait for (the other
+    #: subjects' preprocessing), then the long final-recipe fine-tunes; speech, interpolation, figures and scores
+    #: (priority 0) fill the gaps. Without it a tiny run began with speech and the interpolator and started alpha
+    #: pretraining after 45 minutes.
+    PRIORITIES = {"pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30, "pretrain_resolution": 30,
+                  "subject_preprocessing": 20, "finetune_final": 15, "finetune": 10}
+
+    def step_priority(self, step: str, subject: str | None = None, recipe: str | None = None) -> int:
+        """The priority of a job: `step` is the rule's name; `subject` (preprocessing) or `recipe` (fine-tuning)
+        picks the job's place in the chain (see PRIORITIES)."""
+        if step in ("synthesize_portraits", "extract_frames", "detect_landmarks", "segment_masks", "fit_rgb"):
+            if subject is None or subject == self.real_images["name"]:
+                return self.PRIORITIES["pretraining_set"]
+            return self.PRIORITIES["subject_preprocessing"]
+        if step == "finetune_avatar":
+            return self.PRIORITIES["finetune_final" if recipe == "final" else "finetune"]
+        return self.PRIORITIES.get(step, 0)
+
     def real_set(self, name: str | None = None) -> dict:
         """The preprocessed image set pretraining reads (default: `real_images`): its fit, masks and frames."""
         name = name or self.real_images["name"]
