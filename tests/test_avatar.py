@@ -214,6 +214,7 @@ def test_gain_over_the_best_baseline_respects_each_metrics_direction():
 def parent_model(tmp_path_factory):
     """A tiny pretrained model (alpha1 at smoke scale, a very small network)."""
     from avatarlab.pretrain import train as pretrain
+
     folder = tmp_path_factory.mktemp("parent")
     fake_real_set(folder / "portraits")
     cfg = step_cfg(pretrain, tiny_model_overrides() + ["model.depth=5", f"pretrain.out_dir={folder / 'alpha1'}",
@@ -248,6 +249,7 @@ def test_weight_average_is_the_exponential_moving_average_and_swaps_back():
 def test_ema_decay_outside_zero_to_one_is_a_config_error():
     from avatarlab.avatar import finetune
     from avatarlab.runtime.schema import problems
+
     assert any("finetune.ema_decay: must be below 1" in p
                for p in problems(step_cfg(finetune, ["finetune.ema_decay=1.0"])))
     assert any("finetune.ema_decay: must be at least 0" in p
@@ -258,6 +260,7 @@ def test_ema_decay_outside_zero_to_one_is_a_config_error():
 @pytest.mark.slow
 def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, parent_model, monkeypatch):
     from avatarlab.avatar import finetune
+
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
 
@@ -289,6 +292,7 @@ def test_weight_averaged_finetuning_resumes_exactly_after_a_kill(tmp_path, paren
 @pytest.mark.slow
 def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, parent_model):
     from avatarlab.avatar import finetune
+
     path, parent = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
     cfg = step_cfg(finetune, tiny_model_overrides() + [
@@ -314,6 +318,7 @@ def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, 
 def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model):
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
+
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
     common = tiny_model_overrides() + [f"finetune.subject_dir={subject}", "finetune.test_frames=2",
@@ -342,6 +347,7 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
     from avatarlab.model.head_nerf import load_model_file
+
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=10)
     out = tmp_path / "avatar"
@@ -386,6 +392,7 @@ def test_betas_from_alpha2_and_their_avatars_keep_the_mouth_interior(tmp_path, m
     from avatarlab.data.synthetic import SyntheticGenerator
     from avatarlab.model.head_nerf import load_model_file, synthetic_mouth
     from avatarlab.pretrain import train as pretrain
+
     faces = []  # the face count of the head each synthetic draw comes from (the mouth interior adds faces)
     sample = SyntheticGenerator.sample
     monkeypatch.setattr(SyntheticGenerator, "sample",

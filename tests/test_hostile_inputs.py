@@ -34,6 +34,7 @@ def test_a_loss_that_is_not_finite_stops_training_at_its_iteration_and_keeps_the
 
     from avatarlab.pretrain import train as pretrain
     from avatarlab.training import loop
+
     fake_real_set(tmp_path / "real")
     cfg = step_cfg(pretrain, tiny_model_overrides() + ["strategy=alpha1", "pretrain.iterations=6",
                                                        "pretrain.checkpoint_every=2",
@@ -213,6 +214,7 @@ def test_an_interrupted_report_leaves_the_previous_one_whole(tmp_path, monkeypat
     from test_report import write_avatar
 
     from avatarlab.report import build as report
+
     results, final = tmp_path / "results", "beta6_from_alpha2"
     for k, psnr in enumerate((26.0, 26.4)):
         write_avatar(results, "synth_talk", "final", final + (f"_seed{k}" if k else ""), final, psnr)

@@ -78,6 +78,7 @@ def test_the_speech_model_learns_to_beat_a_still_mouth_for_speakers_it_never_hea
 def pretrained_head_model(folder: Path, seed: int = 0):
     """alpha1's recipe (synthetic samples only), 300 iterations at 32x32 of a narrow pose range, the MSE term alone."""
     from avatarlab.pretrain import train as pretrain
+
     if not (folder / "real").is_dir():
         fake_real_set(folder / "real")
     overrides = NARROW + [f"seed={seed}", "strategy=alpha1", "pretrain.iterations=300",
@@ -106,6 +107,7 @@ def test_head_model_pretraining_learns_to_beat_the_mean_colour_and_the_nearest_s
     draws and the training draw nearest in conditioning (64 of them). Training seeds 0-2 (evaluation seed 0):
     +1.59, +1.40, +1.54 dB head-region PSNR over the best baseline (SD 0.10 dB); the margin asked is 0.5 dB."""
     from avatarlab.pretrain import evaluate as evaluation
+
     folder, net = pretrained
     net.eval()
     cfg = step_cfg(evaluation, NARROW + ["seed=0", f"evaluate.real_subject_dir={folder / 'real'}",
@@ -125,6 +127,7 @@ def test_avatar_fine_tuning_learns_to_beat_every_copied_training_frame(pretraine
 
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
+
     folder, _ = pretrained
     subject = rendered_video_subject(tmp_path / "subject", frames=40, size=32, preset="head_turns")
     common = NARROW + ["seed=0", "finetune=base", f"finetune.subject_dir={subject}", "finetune.test_frames=8",

@@ -249,6 +249,7 @@ def test_eq8_offsets_only_for_real_samples(tmp_path):
 
 def pretrain_cfg(tmp_path, name, *extra):
     from avatarlab.pretrain import train as pretrain
+
     if not (tmp_path / "real").is_dir():
         fake_real_set(tmp_path / "real")
     return step_cfg(pretrain, ["scale=smoke", "strategy=beta4", "strategy.init=null",
@@ -258,6 +259,7 @@ def pretrain_cfg(tmp_path, name, *extra):
 
 def short_training(tmp_path, name, *extra):
     from avatarlab.pretrain import train as pretrain
+
     return pretrain.pretrain_model(pretrain_cfg(tmp_path, name, *extra), torch.device("cpu"))
 
 
@@ -281,6 +283,7 @@ def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration()
 @pytest.mark.parametrize("decay, ema", [("none", 0.0), ("cosine", 0.0), ("none", 0.5)])
 def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, ema):
     from avatarlab.pretrain import train as pretrain
+
     settings = [f"pretrain.lr_decay={decay}", "pretrain.lr_final=0.05", f"pretrain.ema_decay={ema}"]
     full_net, full, _ = short_training(tmp_path, "full", *settings)
     assert [h["step"] for h in full.history] == list(range(1, 10))

@@ -24,6 +24,7 @@ def parent(tmp_path_factory):
     from helpers import fake_real_set
 
     from avatarlab.pretrain import train as pretrain
+
     folder = tmp_path_factory.mktemp("parent")
     fake_real_set(folder / "portraits")
     cfg = step_cfg(pretrain, tiny_model_overrides() + [f"pretrain.out_dir={folder / 'alpha1'}",
@@ -79,6 +80,7 @@ def digests(folder) -> dict[str, str]:
 def test_noise_in_the_test_frames_changes_the_scores_and_nothing_before_them(tmp_path, parent):
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
+
     runs = {}
     for name in ("clean", "noised"):
         subject = fake_video_subject(tmp_path / name / "subject", count=10)

@@ -192,6 +192,7 @@ def report(args) -> int:
 
 def dashboard(args) -> int:
     from avatarlab.runtime import dashboard as dash
+
     return dash.main(["--results", str(REPO / "results"), "--scale", scale_of(args.scale)])
 
 
