@@ -464,6 +464,24 @@ def test_interpolation_never_spans_a_cut_between_two_clips(tmp_path):
     assert triplets.tolist() == [[0, 2, 4], [6, 8, 10]] and counts["two_clips"]["triplets"] == 2
 
 
+def test_the_interpolators_validation_triplets_do_not_depend_on_the_strides_it_trains_on():
+    """The stride is a choice made on validation triplets, so every stride setting is scored on the same stride-1
+    triplets, and none of them is a training target at any stride; at strides [1] the split is the plain one."""
+    from avatarlab.preprocess.interp.pretrain import split_by_stride_one
+    from avatarlab.preprocess.interp.training import training_triplets, validation_split
+
+    kept = np.arange(0, 60, 2)
+    found_1, held_1 = split_by_stride_one(kept, [1], None, 5)
+    found_123, held_123 = split_by_stride_one(kept, [1, 2, 3], None, 5)
+    assert held_1.tolist() == held_123.tolist() and len(held_1) == 6
+    assert (held_1[:, 2] - held_1[:, 0] == 4).all()  # stride 1: neighbours 4 frames apart among the kept frames
+    for found in (found_1, found_123):
+        assert not np.isin(found[:, 1], held_1[:, 1]).any()
+    assert len(found_123) > len(found_1) and {int(r - l) for l, _, r in found_123} == {4, 8, 12}
+    plain, plain_held = validation_split(training_triplets(kept, (1,)), 5)
+    assert found_1.tolist() == plain.tolist() and held_1.tolist() == plain_held.tolist()
+
+
 def test_the_interpolators_paired_gain_is_a_gain_only_beyond_its_ci():
     from scipy import stats
 

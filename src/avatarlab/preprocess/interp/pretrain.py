@@ -34,6 +34,15 @@ log = logging.getLogger(__name__)
 READS = ('seed', 'amp', 'interp')  # the config sections this step reads (runtime/entry.py)
 
 
+def split_by_stride_one(kept: np.ndarray, strides, clips, validation_every: int) -> tuple[np.ndarray, np.ndarray]:
+    """(training, validation) triplets of one video. The validation triplets are always stride-1 ones (the gap the
+    held-out frames sit in), whatever `strides` trains on, so runs with different strides are scored on the same
+    triplets; no training triplet of any stride has a validation triplet's middle frame as its target."""
+    _, held = validation_split(training_triplets(kept, (1,), clips), validation_every)
+    found = training_triplets(kept, strides, clips)
+    return found[~np.isin(found[:, 1], held[:, 1])], held
+
+
 def gather(subject_dirs, strides, validation_every: int = 0,
            motion_dirs=()) -> tuple[torch.Tensor, np.ndarray, dict, np.ndarray]:
     """Every video's frames in one tensor (all crops have the scale's size), the training triplets into it and the
@@ -47,7 +56,7 @@ def gather(subject_dirs, strides, validation_every: int = 0,
         subject = SubjectDir(folder)
         images, clips = to_tensor(subject.frames()), subject.frame_clips()
         kept = np.arange(len(images)) if whole else split_variants(len(images), clips)[0]
-        found, held = validation_split(training_triplets(kept, strides, clips), validation_every)
+        found, held = split_by_stride_one(kept, strides, clips, validation_every)
         frames.append(images)
         triplets.append(found + offset)
         validation.append(np.concatenate([held + offset, np.full((len(held), 1), index)], 1))
