@@ -75,6 +75,8 @@ def test_dry_run_lists_the_jobs(tmp_path):
             priorities[(rule, wildcards)] = int(line.split("priority:")[1])
     assert priorities[("fit_rgb", "subject=portraits")] > priorities[("pretrain_alpha", "alpha=alpha1")] > \
         priorities[("pretrain_beta", "beta=beta6, alpha=alpha2")] > priorities[("fit_rgb", "subject=synth_talk")]
+    # a rule's priority does not pass to what it waits for: the tracking store's set-up carries its own
+    assert priorities[("init_tracking", "")] > priorities[("fit_rgb", "subject=portraits")], priorities
     assert not any(r.startswith("speech") for r, _ in priorities), priorities
 
 

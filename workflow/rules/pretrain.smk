@@ -7,6 +7,7 @@ rule init_tracking:
         TRACKING_READY,
     log:
         TRACKING_LOG,
+    priority: PLAN.step_priority("init_tracking")
     conda:
         "../envs/avatarlab.yaml"
     shell:

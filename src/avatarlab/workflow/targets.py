@@ -189,8 +189,10 @@ class Plan:
     #: subjects' preprocessing), then the long final-recipe fine-tunes; speech, interpolation, figures and scores
     #: (priority 0) fill the gaps. Without it a tiny run began with speech and the interpolator and started alpha
     #: pretraining after 45 minutes.
-    PRIORITIES = {"pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30, "pretrain_resolution": 30,
-                  "subject_preprocessing": 20, "finetune_final": 15, "finetune": 10}
+    #: A rule's priority does not pass to the jobs it waits for, so each of those carries its own: the tracking
+    #: store's set-up (every training step needs it) first of all.
+    PRIORITIES = {"init_tracking": 60, "pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30,
+                  "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "finetune": 10}
 
     def step_priority(self, step: str, subject: str | None = None, recipe: str | None = None) -> int:
         """The priority of a job: `step` is the rule's name; `subject` (preprocessing) or `recipe` (fine-tuning)
