@@ -77,6 +77,7 @@ def test_dry_run_lists_the_jobs(tmp_path):
         priorities[("pretrain_beta", "beta=beta6, alpha=alpha2")] > priorities[("fit_rgb", "subject=synth_talk")]
     # a rule's priority does not pass to what it waits for: the tracking store's set-up carries its own
     assert priorities[("init_tracking", "")] > priorities[("fit_rgb", "subject=portraits")], priorities
+    assert priorities[("synthesize_subject", "subject=synth_talk")] == priorities[("fit_rgb", "subject=synth_talk")]
     assert not any(r.startswith("speech") for r, _ in priorities), priorities
 
 

@@ -199,6 +199,8 @@ def test_the_chain_every_model_waits_for_starts_first():
              plan.step_priority("speech_real_eval")]
     assert order == sorted(order, reverse=True) and len(set(order)) == len(order), order
     assert plan.step_priority("synthesize_portraits") == plan.step_priority("detect_landmarks", real) == order[1]
+    # a synthetic subject's video is the first step of its preprocessing, not a gap filler
+    assert plan.step_priority("synthesize_subject", "synth_talk") == plan.step_priority("fit_rgb", "synth_talk")
 
 
 def test_common_smk_only_wires(tmp_path):

@@ -15,6 +15,7 @@ rule synthesize_subject:
                 "subject.seed": int(PLAN.all_subjects[wc.subject].get("seed", 0)), "subject.video_out": output.video,
                 "subject.truth_out": output.truth},
             run_dir=lambda wc: TREE.subject(wc.subject, ".hydra", "synthesize")),
+    priority: lambda wc: PLAN.step_priority("synthesize_subject", wc.subject)
     threads: step_threads("light")
     resources:
         **step_resources("light"),

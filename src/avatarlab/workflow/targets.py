@@ -197,7 +197,7 @@ class Plan:
     def step_priority(self, step: str, subject: str | None = None, recipe: str | None = None) -> int:
         """The priority of a job: `step` is the rule's name; `subject` (preprocessing) or `recipe` (fine-tuning)
         picks the job's place in the chain (see PRIORITIES)."""
-        if step in ("synthesize_portraits", "extract_frames", "detect_landmarks", "segment_masks", "fit_rgb"):
+        if step in ("synthesize_portraits", "synthesize_subject", "extract_frames", "detect_landmarks", "segment_masks", "fit_rgb"):
             if subject is None or subject == self.real_images["name"]:
                 return self.PRIORITIES["pretraining_set"]
             return self.PRIORITIES["subject_preprocessing"]
