@@ -193,8 +193,8 @@ def test_the_chain_every_model_waits_for_starts_first():
     config.update(scale="smoke", subjects={k: v for k, v in config["subjects"].items() if not v.get("optional")})
     plan = Plan(config, sweep_dir=REPO / "conf" / "sweep")
     real = plan.real_images["name"]
-    order = [plan.step_priority("init_tracking"), plan.step_priority("fit_rgb", real), plan.step_priority("pretrain_alpha"),
-             plan.step_priority("pretrain_beta"), plan.step_priority("fit_rgb", "synth_talk"),
+    order = [plan.step_priority("init_tracking"), plan.step_priority("fit_rgb", real),
+             plan.step_priority("pretrain_alpha"), plan.step_priority("pretrain_beta"), plan.step_priority("fit_rgb", "synth_talk"),
              plan.step_priority("finetune_avatar", recipe="final"), plan.step_priority("finetune_avatar", recipe="base"),
              plan.step_priority("speech_real_eval")]
     assert order == sorted(order, reverse=True) and len(set(order)) == len(order), order

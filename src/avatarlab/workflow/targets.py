@@ -193,11 +193,14 @@ class Plan:
     #: store's set-up (every training step needs it) first of all.
     PRIORITIES = {"init_tracking": 60, "pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30,
                   "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "finetune": 10}
+    #: the steps of a subject's preprocessing, from its images or synthetic video to its fit
+    PREPROCESSING_STEPS = ("synthesize_portraits", "synthesize_subject", "extract_frames", "detect_landmarks",
+                           "segment_masks", "fit_rgb")
 
     def step_priority(self, step: str, subject: str | None = None, recipe: str | None = None) -> int:
         """The priority of a job: `step` is the rule's name; `subject` (preprocessing) or `recipe` (fine-tuning)
         picks the job's place in the chain (see PRIORITIES)."""
-        if step in ("synthesize_portraits", "synthesize_subject", "extract_frames", "detect_landmarks", "segment_masks", "fit_rgb"):
+        if step in self.PREPROCESSING_STEPS:
             if subject is None or subject == self.real_images["name"]:
                 return self.PRIORITIES["pretraining_set"]
             return self.PRIORITIES["subject_preprocessing"]
