@@ -64,7 +64,7 @@ def test_dry_run_lists_the_jobs(tmp_path):
     # subjects) and of the alpha1 / alpha2 avatars of synth_talk + the interpolation variants b and c of both
     assert planned["finetune_avatar"] == (14 + 2 + 1) + (2 + 2) + 4 and planned["evaluate_avatar"] == 17 + 4 + 4
     assert "finetune_avatar_seed" not in planned and "finetune_interp_variant" not in planned
-    # the chain every model waits for starts first (workflow/targets.py Plan.PRIORITIES); speech keeps priority 0
+    # the chain every model waits for starts first (workflow/targets.py Plan.PRIORITIES); scores fill the gaps
     priorities, rule, wildcards = {}, None, ""
     for line in dry.stdout.splitlines():
         if m := re.match(r"^(?:local)?rule (\w+):", line):
@@ -78,7 +78,11 @@ def test_dry_run_lists_the_jobs(tmp_path):
     # a rule's priority does not pass to what it waits for: the tracking store's set-up carries its own
     assert priorities[("init_tracking", "")] > priorities[("fit_rgb", "subject=portraits")], priorities
     assert priorities[("synthesize_subject", "subject=synth_talk")] == priorities[("fit_rgb", "subject=synth_talk")]
-    assert not any(r.startswith("speech") for r, _ in priorities), priorities
+    # the side chains go after the final fine-tunes and before the base ones, not at the end
+    assert priorities[("finetune_avatar", "subject=synth_talk, recipe=final, avatar=beta6_from_alpha2")] > \
+        priorities[("speech_train", "speech_model=lstm_reg")] == priorities[("speech_corpus", "")] > \
+        priorities[("finetune_avatar", "subject=synth_talk, recipe=base, avatar=beta6_from_alpha2")], priorities
+    assert not any(r.startswith("evaluate") for r, _ in priorities), priorities
 
 
 def test_a_killed_workflow_is_unlocked_and_resumes(tmp_path):

@@ -151,6 +151,7 @@ rule train_interpolator:
             "interp.motion_dirs": [str(Path(m).parent) for m in input.motion],
             "interp.out_dir": str(Path(output.model).parent)},
             run_dir=lambda wc: TREE.interp(".hydra")),
+    priority: PLAN.step_priority("train_interpolator")
     threads: step_threads("fit")
     resources:
         **step_resources("fit"),
@@ -173,6 +174,7 @@ rule interpolate_frames:
         LOG_TREE.subject("{subject}", "interp.log"),
     params:
         **subject_step("avatarlab.preprocess.interp.run", "interp", **{"interp.model": lambda i, o: i.model}),
+    priority: PLAN.step_priority("interpolate_frames")
     threads: step_threads("fit")
     resources:
         **step_resources("fit"),

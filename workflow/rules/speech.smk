@@ -10,6 +10,7 @@ rule speech_corpus:
     params:
         **step_params("avatarlab.speech.corpus", values=lambda wc, input, output: {"speech.corpus": output.corpus},
                       run_dir=lambda wc: TREE.speech(".hydra", "corpus")),
+    priority: PLAN.step_priority("speech_corpus")
     threads: step_threads("light")
     resources:
         **step_resources("light"),
@@ -34,6 +35,7 @@ rule speech_train:
             values=lambda wc, input, output: {"speech.corpus": input.corpus,
                                               "speech.out_dir": str(Path(output.model).parent)},
             run_dir=lambda wc: TREE.speech(".hydra", wc.speech_model)),
+    priority: PLAN.step_priority("speech_train")
     threads: step_threads("speech")
     resources:
         **step_resources("speech"),
@@ -85,6 +87,7 @@ rule speech_real_eval:
             "speech.real_clips": list(input.clips), "speech.real_models": list(input.models),
             "speech.real_eval_out": output.report},
             run_dir=lambda wc: TREE.speech(".hydra", "real_eval")),
+    priority: PLAN.step_priority("speech_real_eval")
     threads: step_threads("light")
     resources:
         **step_resources("light"),

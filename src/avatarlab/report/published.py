@@ -60,7 +60,7 @@ SUBSTITUTIONS = [
      "background feature composited by 1 - opacity", "fitted heads lie at other distances than a fixed interval"),
     ("sizes (tiny)", "8x384 MLP, 64 samples, 32->256 px, batch 64, 310 000 + 2 500 iterations, 1000 fine-tuning "
      "iterations, 4 of 8 layers frozen, neck range [80, 60, 80] deg", "4x96 MLP, 16 samples, 16->128 px, batch 4, "
-     "3 000 + 200 iterations, 250 fine-tuning iterations (the final recipe 1 200), 2 of 4 layers frozen (the final "
+     "3 000 + 200 iterations, 200 fine-tuning iterations (the final recipe 1 200), 2 of 4 layers frozen (the final "
      "recipe 1), neck range [30, 40, 20] deg",
      "two CPU cores and two hours; `scale=paper` restores the dissertation's sizes"),
     ("speech corpus", "recorded GRID speakers", "GRID-grammar sentences spoken by seven espeak-ng and three Festival "

@@ -186,16 +186,19 @@ class Plan:
 
     #: Snakemake `priority` of a step's jobs (higher starts first among the ready ones). Every model waits for the
     #: chain pretraining image set -> alpha -> beta, so it goes first, then what the avatars wait for (the other
-    #: subjects' preprocessing), then the long final-recipe fine-tunes; speech, interpolation, figures and scores
-    #: (priority 0) fill the gaps. Without it a tiny run began with speech and the interpolator and started alpha
-    #: pretraining after 45 minutes.
+    #: subjects' preprocessing), then the long final-recipe fine-tunes, then the side chains (speech's corpus, models
+    #: and real-clip scores, the interpolator; a job of up to 16 min at tiny that, left to the end, ran alone as the
+    #: run's tail), then the base fine-tunes; figures, applications and scores (priority 0) fill the gaps. Without
+    #: priorities a tiny run began with speech and the interpolator and started alpha pretraining after 45 minutes.
     #: A rule's priority does not pass to the jobs it waits for, so each of those carries its own: the tracking
     #: store's set-up (every training step needs it) first of all.
     PRIORITIES = {"init_tracking": 60, "pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30,
-                  "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "finetune": 10}
+                  "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "side_chain": 12, "finetune": 10}
     #: the steps of a subject's preprocessing, from its images or synthetic video to its fit
     PREPROCESSING_STEPS = ("synthesize_portraits", "synthesize_subject", "extract_frames", "detect_landmarks",
                            "segment_masks", "fit_rgb")
+    #: the steps of the side chains (speech's, the interpolator's): started after the final fine-tunes, not at the end
+    SIDE_CHAIN_STEPS = ("speech_corpus", "speech_train", "speech_real_eval", "train_interpolator", "interpolate_frames")
 
     def step_priority(self, step: str, subject: str | None = None, recipe: str | None = None) -> int:
         """The priority of a job: `step` is the rule's name; `subject` (preprocessing) or `recipe` (fine-tuning)
@@ -204,6 +207,8 @@ class Plan:
             if subject is None or subject == self.real_images["name"]:
                 return self.PRIORITIES["pretraining_set"]
             return self.PRIORITIES["subject_preprocessing"]
+        if step in self.SIDE_CHAIN_STEPS:
+            return self.PRIORITIES["side_chain"]
         if step == "finetune_avatar":
             return self.PRIORITIES["finetune_final" if recipe == "final" else "finetune"]
         return self.PRIORITIES.get(step, 0)
