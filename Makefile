@@ -10,10 +10,11 @@ PORT ?= 5000
 
 .PHONY: main test test-fast lint setup system browser cluster unlock dashboard clean-results
 
+# pip --quiet twice: errors only (a machine's pip configuration can add a warning per package: 221 lines here)
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip setuptools wheel
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet --quiet --upgrade pip setuptools wheel
+	$(BIN)/pip install --quiet --quiet -e '.[test]'
 	touch $@
 
 setup: $(VENV)/.installed
