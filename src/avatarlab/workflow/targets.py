@@ -193,7 +193,8 @@ class Plan:
     #: A rule's priority does not pass to the jobs it waits for, so each of those carries its own: the tracking
     #: store's set-up (every training step needs it) first of all.
     PRIORITIES = {"init_tracking": 60, "pretraining_set": 50, "pretrain_alpha": 40, "pretrain_beta": 30,
-                  "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "side_chain": 12, "finetune": 10}
+                  "pretrain_resolution": 30, "subject_preprocessing": 20, "finetune_final": 15, "side_chain": 12,
+                  "finetune": 10}
     #: the steps of a subject's preprocessing, from its images or synthetic video to its fit
     PREPROCESSING_STEPS = ("synthesize_portraits", "synthesize_subject", "extract_frames", "detect_landmarks",
                            "segment_masks", "fit_rgb")
