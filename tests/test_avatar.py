@@ -363,6 +363,9 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
     assert report["test_indices"] == [8, 9] and scored == [torch.Size([2, 3, 64, 64])] * 4
     assert [c["step"] for c in report["validation_scores"]] == [start + 1, start + 2, start + 3, start + 4]
     assert report["chosen_step"] == start + 1 and report["iterations"] == 4 and report["validation_psnr"] == 30.0
+    # ST-LPIPS beside each candidate's PSNR, recorded (the chosen one's too), never chosen on
+    assert all(0 < c["st_lpips"] < 10 for c in report["validation_scores"]), report["validation_scores"]
+    assert report["validation_st_lpips"] == report["validation_scores"][0]["st_lpips"]
     model, content = load_model_file(out / "model.pt")
     first, _ = load_model_file(out / "snapshots" / f"step_{start + 1:07d}.pt")
     end, _ = load_model_file(out / "snapshots" / f"step_{start + 4:07d}.pt")
@@ -381,6 +384,30 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
     without, _ = evaluation.evaluate_avatar(cfg, torch.device("cpu"))
     assert without["all"]["baselines"]["last_frame"]["psnr"] != pytest.approx(last["psnr"]), \
         "the last-frame baseline copies frame 7 (a validation frame), not frame 5"
+
+
+def test_the_st_lpips_term_joins_the_loss_only_when_weighted(tmp_path, parent_model):
+    """finetune.w_st_lpips > 0 adds the ST-LPIPS term (on head windows with st_lpips_crop) to eq. (8): each logged
+    loss is the sum of its terms; at 0 (the default) the term is absent and the loss is eq. (8) alone."""
+    from avatarlab.avatar import finetune
+
+    path, _ = parent_model
+    subject = fake_video_subject(tmp_path / "subject", count=8)
+    for weight, crop in ((0.0, 0), (0.5, 32)):
+        out = tmp_path / f"avatar_{weight}"
+        cfg = step_cfg(finetune, tiny_model_overrides() + [
+            f"finetune.subject_dir={subject}", "finetune.test_frames=2", f"finetune.out_dir={out}",
+            f"finetune.init_model={path}", "finetune.iterations=3", "finetune.log_every=1",
+            f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}"])
+        _, _, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
+        history = report["history"]
+        assert len(history) == 3
+        if weight == 0:
+            assert all("st_lpips_term" not in h for h in history)
+        else:
+            assert all(h["st_lpips_term"] > 0 for h in history)
+            for h in history:  # no offsets are learned for the fixed codes here: loss = mse + perceptual + st_lpips
+                assert h["loss"] == pytest.approx(h["mse"] + h["perceptual"] + h["st_lpips_term"], rel=1e-4, abs=1e-6)
 
 
 @pytest.mark.slow

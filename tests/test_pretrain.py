@@ -5,6 +5,7 @@ from helpers import compose_config, fake_real_set, step_cfg
 from helpers.training import killed_at_optimizer_step
 
 from avatarlab.data.schedule import scaled_schedule, synthetic_probability
+from avatarlab.metrics.quality import STLPIPSDistance
 from avatarlab.model.cnerf import (
     CNeRF,
     CNeRFConfig,
@@ -15,7 +16,14 @@ from avatarlab.model.cnerf import (
     sphere_interval,
     volume_render_features,
 )
-from avatarlab.model.losses import RandomConvFeatures, VGGFeatures, head_model_loss, perceptual_network
+from avatarlab.model.losses import (
+    RandomConvFeatures,
+    VGGFeatures,
+    crop_at,
+    head_model_loss,
+    head_patches,
+    perceptual_network,
+)
 from avatarlab.model.renderer2d import NeuralRenderer2D
 from avatarlab.render import orbit_camera
 
@@ -245,6 +253,44 @@ def test_eq8_offsets_only_for_real_samples(tmp_path):
     assert isinstance(vgg, VGGFeatures) and len(vgg(torch.rand(1, 3, 32, 32))) == 4
     with pytest.raises(FileNotFoundError, match="nothere.pth"):
         VGGFeatures(tmp_path / "nothere.pth")
+
+
+def test_st_lpips_term_is_a_differentiable_distance():
+    """The ST-LPIPS term (`finetune.w_st_lpips`): zero for the target itself, larger for a blurred render than for a
+    slightly noisy one, and its gradient reaches the render; on head windows it still sees the difference."""
+    torch.manual_seed(0)
+    target = torch.rand(2, 3, 64, 64)
+    target = torch.nn.functional.avg_pool2d(target, 3, 1, 1)  # some structure at several scales
+    mask = torch.zeros(2, 1, 64, 64)
+    mask[:, :, 16:48, 16:48] = 1
+    whole = STLPIPSDistance()
+    assert not any(p.requires_grad for p in whole.parameters())
+    assert float(whole.distance(target, target, mask)) == pytest.approx(0.0, abs=1e-6)
+    blurred = torch.nn.functional.avg_pool2d(target, 7, 1, 3)
+    noisy = (target + 0.01 * torch.randn_like(target)).clamp(0, 1)
+    assert float(whole.distance(blurred, target, mask)) > float(whole.distance(noisy, target, mask)) > 0
+    pred = blurred.clone().requires_grad_(True)
+    whole.distance(pred, target, mask).backward()
+    assert pred.grad is not None and float(pred.grad.abs().sum()) > 0
+    windows = STLPIPSDistance(crop=32)
+    assert windows.crop == 32 and float(windows.distance(blurred, target, mask)) > 0
+    assert float(windows.distance(target, target, mask)) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_head_windows_lie_inside_the_image_around_the_head():
+    images = torch.rand(64, 3, 40, 50)
+    mask = torch.zeros(64, 1, 40, 50)
+    mask[:, :, 30:34, 40:44] = 1  # a small head near the bottom-right corner
+    corners = head_patches(images, mask, 16, generator=torch.Generator().manual_seed(0))
+    assert corners.shape == (64, 2)
+    assert (corners[:, 0] >= 0).all() and (corners[:, 0] <= 40 - 16).all()
+    assert (corners[:, 1] >= 0).all() and (corners[:, 1] <= 50 - 16).all()
+    # every window holds its centre pixel, drawn from the mask
+    assert ((corners[:, 0] + 16 > 30) & (corners[:, 1] + 16 > 40)).all()
+    crops = crop_at(images, corners, 16)
+    assert crops.shape == (64, 3, 16, 16)
+    r, c = corners[5].tolist()
+    assert torch.equal(crops[5], images[5, :, r:r + 16, c:c + 16])
 
 
 def pretrain_cfg(tmp_path, name, *extra):

@@ -176,3 +176,29 @@ def test_a_sweep_chooses_on_validation_and_the_test_only_scores(tmp_path):
     (point / "train.json").write_text(json.dumps({"chosen_step": 300, "validation_scores": [
         {"step": 300, "psnr": 22.4}, {"step": 600, "psnr": 22.1}]}))
     assert validation_score(point) == 22.4
+
+
+def test_a_sweep_may_choose_on_validation_st_lpips(tmp_path):
+    """`choose_on: st_lpips` (the perceptual-term sweep): the setting with the lowest mean validation ST-LPIPS is
+    chosen, even where another has the better validation PSNR; a word other than psnr / st_lpips is refused."""
+    spec = tmp_path / "perceptual.yaml"
+    spec.write_text("step: finetune\nsubject: s\ninit: alpha1\nchoose_on: st_lpips\n"
+                    "overrides: {finetune.perceptual: 'features,st_lpips', seed: range(2)}\n")
+    sweep = load_sweep(spec)
+    assert sweep.choose_on == "st_lpips"
+    folder = tmp_path / "results"
+    for p in sweep.points:
+        sharp = p.values["finetune.perceptual"] == "st_lpips"
+        fake_point(folder, p.name, 26.0 + 0.1 * p.seed, 0.25)
+        (folder / p.name / "train.json").write_text(json.dumps(
+            {"validation_psnr": 24.0 - 0.2 * sharp, "validation_st_lpips": 0.17 if sharp else 0.24 + 0.01 * p.seed}))
+    table, rows = summarise(sweep, folder)
+    chosen = [r for r in rows if r["chosen"] == "chosen"]
+    assert len(chosen) == 1 and chosen[0]["finetune.perceptual"] == "st_lpips"
+    assert chosen[0]["validation_st_lpips"] == pytest.approx(0.17)
+    other = next(r for r in rows if r is not chosen[0])
+    assert other["validation_st_lpips"] == pytest.approx(0.245) and other["validation_psnr"] == pytest.approx(24.0)
+    assert "best mean validation ST-LPIPS" in table.note and "validation_st_lpips" in table.markdown()
+    spec.write_text(spec.read_text().replace("choose_on: st_lpips", "choose_on: ssim"))
+    with pytest.raises(ConfigError, match=r"perceptual.yaml: choose_on must be one of psnr, st_lpips"):
+        load_sweep(spec)

@@ -26,7 +26,7 @@ from avatarlab.data.schedule import Schedule
 from avatarlab.data.splits import avatar_split
 from avatarlab.data.synthetic import SyntheticGenerator
 from avatarlab.headmodel import load_head_model
-from avatarlab.metrics.quality import psnr
+from avatarlab.metrics.quality import STLPIPS, psnr
 from avatarlab.model.head_nerf import load_model_file, model_file, render_frames, synthetic_mouth
 from avatarlab.model.losses import composite, perceptual_network
 from avatarlab.runtime.entry import entry_point, step_settings
@@ -50,7 +50,7 @@ def recipe_of(cfg, start: int) -> Recipe:
                   renderer_lr=float(ft.renderer_lr),
                   z_aug=bool(ft.z_aug), z_aug_range=tuple(ft.z_aug_range), fixed_codes=tuple(ft.fixed_codes),
                   freeze_layers=int(ft.freeze_layers), w_mse=float(m.w_mse), w_perceptual=float(m.w_perceptual),
-                  w_mask=float(m.w_mask),
+                  w_mask=float(m.w_mask), w_st_lpips=float(ft.w_st_lpips), st_lpips_crop=int(ft.st_lpips_crop),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
                   log_every=int(ft.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision),
                   snapshots=snapshots, lr_decay=str(ft.lr_decay),
@@ -61,24 +61,27 @@ def recipe_of(cfg, start: int) -> Recipe:
 def choose_stop(net, snapshot_dir: Path, validation: RealImageSet, end_step: int, end_seconds: float,
                 device) -> dict:
     """Scores every snapshot and the end of training (`net`) on the validation frames (PSNR, eq. 10, of the render
-    composited into the frame's mask, as the evaluation scores test frames) -> {"scores": [{step, seconds, psnr}]
-    in step order, "step", "seconds", "psnr" of the best (the earliest on a tie), "state": its weights (None: the
-    end of training)}."""
+    composited into the frame's mask, as the evaluation scores test frames; ST-LPIPS beside it, recorded, not
+    chosen on) -> {"scores": [{step, seconds, psnr, st_lpips}] in step order, "step", "seconds", "psnr" of the best
+    PSNR (the earliest on a tie), "state": its weights (None: the end of training)}."""
     target = composite(validation.images, validation.masks)
+    st_lpips = STLPIPS(device)
 
-    def score(model) -> float:
-        return psnr(composite(render_frames(model, validation), validation.masks), target)
+    def score(model) -> dict:
+        pred = composite(render_frames(model, validation), validation.masks)
+        return {"psnr": psnr(pred, target), "st_lpips": st_lpips(pred, target)}
 
     candidates = []
     for path in sorted(snapshot_dir.glob("step_*.pt")):
         model, content = load_model_file(path, device)
         if int(content["step"]) < end_step:  # (a resumed run's copy of the end of training is the end itself)
-            candidates.append({"step": int(content["step"]), "seconds": content.get("seconds"), "psnr": score(model),
+            candidates.append({"step": int(content["step"]), "seconds": content.get("seconds"), **score(model),
                                "state": content["state"]})
-    candidates.append({"step": end_step, "seconds": end_seconds, "psnr": score(net.eval()), "state": None})
+    candidates.append({"step": end_step, "seconds": end_seconds, **score(net.eval()), "state": None})
     best = max(candidates, key=lambda c: (c["psnr"], -c["step"]))
-    return {"scores": [{k: c[k] for k in ("step", "seconds", "psnr")} for c in candidates],
-            "step": best["step"], "seconds": best["seconds"], "psnr": best["psnr"], "state": best["state"]}
+    return {"scores": [{k: c[k] for k in ("step", "seconds", "psnr", "st_lpips")} for c in candidates],
+            "step": best["step"], "seconds": best["seconds"], "psnr": best["psnr"], "st_lpips": best["st_lpips"],
+            "state": best["state"]}
 
 
 def finetune_avatar(cfg, device):
@@ -133,8 +136,9 @@ def finetune_avatar(cfg, device):
         if len(split.validation):
             validation = RealImageSet(ft.subject_dir, size, split.validation)
             stop = choose_stop(net, out_dir / "snapshots", validation, result.step, result.seconds, device)
-            log.info("validation PSNR on %d held-out frames: %s -> the avatar is step %d", len(validation),
-                     ", ".join(f"{c['step']}: {c['psnr']:.2f}" for c in stop["scores"]), stop["step"])
+            log.info("validation PSNR (ST-LPIPS) on %d held-out frames: %s -> the avatar is step %d", len(validation),
+                     ", ".join(f"{c['step']}: {c['psnr']:.2f} ({c['st_lpips']:.3f})" for c in stop["scores"]),
+                     stop["step"])
             if stop["state"] is not None:  # an earlier snapshot wins: keep the end of training on the curve
                 snapshot(result.step, result.seconds)
                 net.load_state_dict(stop["state"])
@@ -145,7 +149,8 @@ def finetune_avatar(cfg, device):
                   "split": split.protocol, "train_frames": len(split.train), "train_indices": split.train.tolist(),
                   "test_indices": split.test.tolist(), "iterations": result.step - recipe.start,
                   "validation_indices": split.validation.tolist(), "chosen_step": stop["step"],
-                  "validation_psnr": stop.get("psnr"), "validation_scores": stop.get("scores", []),
+                  "validation_psnr": stop.get("psnr"), "validation_st_lpips": stop.get("st_lpips"),
+                  "validation_scores": stop.get("scores", []),
                   "train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
                   "synthetic_samples": "none" if synthetic is None else ("mouth interior" if mouth else "plain head"),
                   "history": result.history, "run_id": run_id}
@@ -154,8 +159,8 @@ def finetune_avatar(cfg, device):
             import mlflow
 
             mlflow.log_metrics({"train_seconds": result.seconds, "samples_per_second": result.samples_per_second,
-                                **({"chosen_step": stop["step"], "validation_psnr": stop["psnr"]} if "psnr" in stop
-                                   else {})})
+                                **({"chosen_step": stop["step"], "validation_psnr": stop["psnr"],
+                                       "validation_st_lpips": stop["st_lpips"]} if "psnr" in stop else {})})
     checkpoint.remove()
     return net, result, report
 

@@ -20,6 +20,7 @@ import kornia
 import numpy as np
 import torch
 
+from avatarlab.model.losses import crop_at, head_patches
 from avatarlab.runtime.config import CPU
 from avatarlab.runtime.safe_load import load_tensors
 
@@ -95,6 +96,25 @@ class STLPIPS:
 
     def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> float:
         return float(self.per_image(pred, target).mean())
+
+
+class STLPIPSDistance(torch.nn.Module):
+    """The perceptual term as the ST-LPIPS distance (AlexNet, shift-tolerant; the weights of the stlpips-pytorch
+    wheel, frozen): the batch's mean distance between the render and the target, inputs in [0, 1]. `crop` > 0: on
+    one `crop`-pixel window per sample, centred on a random head pixel (LPIPS was trained on 64-pixel patches; a
+    64-pixel window of a 128-pixel image costs about a quarter)."""
+
+    def __init__(self, crop: int = 0):
+        super().__init__()
+        self.model = STLPIPS().model
+        self.crop = int(crop)
+        self.name = "ST-LPIPS AlexNet (stlpips-pytorch wheel)" + (f", {self.crop}-pixel head windows" if crop else "")
+
+    def distance(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        if 0 < self.crop < min(pred.shape[-2:]):
+            corners = head_patches(pred, torch.ones_like(pred[:, :1]) if mask is None else mask, self.crop)
+            pred, target = crop_at(pred, corners, self.crop), crop_at(target, corners, self.crop)
+        return self.model(pred, target, normalize=True).mean()
 
 
 class LPIPS:

@@ -4,6 +4,9 @@ L = w1 |(I_gt - I_pred) * mask|^2 / sum(mask) + w2 sum_j |phi_j(I_gt) - phi_j(I_
 k in {beta, theta, psi, tau, lambda}: learnable per-sample offsets of the fitted vectors (w_k = 0 for synthetic
 samples). phi_j are VGG16 feature maps when ImageNet weights are given by path; otherwise a documented stand-in
 (fixed random multi-scale convolutions - a texture/edge-sensitive feature loss, NOT VGG) is used and a warning says so.
+Not in the dissertation, and off unless asked for (`finetune.w_st_lpips` > 0): one more term, the ST-LPIPS
+distance (AlexNet; its weights ship in the stlpips-pytorch wheel) - a learned perceptual metric that needs no
+download, but is also one of the evaluation's metrics, so identity similarity and landmark error stand beside it.
 """
 from __future__ import annotations
 
@@ -20,7 +23,14 @@ _MEAN = torch.tensor([0.485, 0.456, 0.406])[None, :, None, None]
 _STD = torch.tensor([0.229, 0.224, 0.225])[None, :, None, None]
 
 
-class VGGFeatures(nn.Module):
+class FeatureDistance(nn.Module):
+    """Eq. (8)'s perceptual term over feature maps phi_j: sum_j mean |phi_j(target) - phi_j(pred)|^2."""
+
+    def distance(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        return sum(((a - b) ** 2).mean() for a, b in zip(self(target), self(pred)))
+
+
+class VGGFeatures(FeatureDistance):
     def __init__(self, weights_path: str | Path):
         super().__init__()
         from torchvision.models import vgg16
@@ -45,7 +55,7 @@ class VGGFeatures(nn.Module):
         return out
 
 
-class RandomConvFeatures(nn.Module):
+class RandomConvFeatures(FeatureDistance):
     """Stand-in for VGG when no ImageNet weights are given: fixed, seeded random conv pyramid (not a learned metric)."""
 
     def __init__(self, seed: int = 0):
@@ -71,7 +81,23 @@ class RandomConvFeatures(nn.Module):
         return out
 
 
+def head_patches(images: torch.Tensor, mask: torch.Tensor, size: int, generator=None) -> torch.Tensor:
+    """One square window of `size` pixels per sample, centred on a pixel drawn from the sample's mask (uniformly
+    where the mask is empty) and moved inside the image -> (row, column) offsets (B, 2)."""
+    b, _, h, w = images.shape
+    weights = mask.reshape(b, -1).float() + 1e-6
+    flat = torch.multinomial(weights, 1, generator=generator)[:, 0]
+    rows = (flat // w - size // 2).clamp(0, h - size)
+    cols = (flat % w - size // 2).clamp(0, w - size)
+    return torch.stack([rows, cols], 1)
+
+
+def crop_at(images: torch.Tensor, corners: torch.Tensor, size: int) -> torch.Tensor:
+    return torch.stack([img[:, r:r + size, c:c + size] for img, (r, c) in zip(images, corners.tolist())])
+
+
 def perceptual_network(vgg_weights: str | None) -> nn.Module:
+    """Eq. (8)'s feature maps: VGG16 (the dissertation's) when `vgg_weights` is given, else the random-conv stand-in."""
     if vgg_weights:
         net = VGGFeatures(vgg_weights)
         log.info("perceptual loss: VGG16 from %s", vgg_weights)
@@ -90,8 +116,7 @@ def head_model_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
                     w_mse: float = 1.0, w_perceptual: float = 0.1) -> dict[str, torch.Tensor]:
     """Eq. (8). pred/target (B,3,H,W), mask (B,1,H,W), offsets name -> (B, dim), is_real (B,) bool."""
     terms = {"mse": w_mse * (((target - pred) * mask) ** 2).sum() / (3 * mask.sum()).clamp(min=1)}
-    fp, ft = features(pred), features(target)
-    terms["perceptual"] = w_perceptual * sum(((a - b) ** 2).mean() for a, b in zip(ft, fp))
+    terms["perceptual"] = w_perceptual * features.distance(pred, target, mask)
     real = is_real.float()
     terms["offsets"] = sum(offset_weights.get(k, 0.0) * ((v**2).sum(-1) * real).sum() / real.sum().clamp(min=1)
                            for k, v in offsets.items()) if offsets else torch.zeros((), device=pred.device)

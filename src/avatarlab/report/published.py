@@ -78,6 +78,11 @@ SUBSTITUTIONS = [
      "exponential moving average of its weights (scale.finetune_final_ema_decay = 0.99; paper scale: the last "
      "iterate)", "at 1 200 iterations the last iterate overfits the training frames; the average scored higher on "
      "both synthetic subjects in every seed (sweeps finetune_ema, finetune_ema_talk)"),
+    ("avatar loss (tiny, smoke)", "eq. (8): masked MSE, VGG16 features, offsets", "eq. (8) + 0.02 x the ST-LPIPS "
+     "distance (AlexNet, weights in its wheel) on one 64-pixel head window per sample, in the final recipe "
+     "(scale.finetune_final_w_st_lpips; paper scale: eq. 8 alone)", "eq. (8)'s renders were blurrier than a copied "
+     "training frame; chosen on validation frames. ST-LPIPS is also reported, so identity, landmark error and face "
+     "detection stand beside it"),
     ("avatar test split", "INSTA protocol (last 350 frames)", "for multi-clip real subjects the last clip is held out",
      "an avatar must render a recording it never saw"),
 ]

@@ -41,29 +41,33 @@ def also_columns(sweep: Sweep, runs: list) -> dict:
     return out
 
 
-def validation_score(folder: Path) -> float | None:
-    """The validation PSNR a fine-tuning point chose its avatar on (its train.json), None without a validation split."""
+def validation_score(folder: Path, on: str = "psnr") -> float | None:
+    """The validation score (`on`: psnr or st_lpips) of the avatar a fine-tuning point chose (its train.json), None
+    without a validation split or where that score was not recorded."""
     path = folder / "train.json"
     if not path.is_file():
         return None
     report = json.loads(path.read_text())
-    if report.get("validation_psnr") is not None:
-        return report["validation_psnr"]
-    chosen = [s["psnr"] for s in report.get("validation_scores") or [] if s.get("step") == report.get("chosen_step")]
+    if report.get(f"validation_{on}") is not None:
+        return report[f"validation_{on}"]
+    chosen = [s.get(on) for s in report.get("validation_scores") or [] if s.get("step") == report.get("chosen_step")]
     return chosen[0] if chosen else None
 
 
-def mark_chosen(rows: list[dict]) -> str:
-    """Marks the setting with the best mean validation PSNR `chosen` (the choice; the test columns only score it);
-    without validation scores for every setting nothing is chosen. -> the note's sentence about it."""
+def mark_chosen(rows: list[dict], on: str = "psnr") -> str:
+    """Marks the setting with the best mean validation score `chosen` (`on`: the highest PSNR or the lowest
+    ST-LPIPS; the choice, the test columns only score it); without validation scores for every setting nothing is
+    chosen. -> the note's sentence about it."""
+    key = f"validation_{on}"
     for r in rows:
         r["chosen"] = ""
-    if not rows or any(r["validation_psnr"] is None for r in rows):
-        return ("No validation split (finetune.validation_frames / validation_clips = 0): this sweep chooses nothing; "
-                "its best-on-test row is a score, not a choice.")
-    pick = max(rows, key=lambda r: r["validation_psnr"])
+    if not rows or any(r[key] is None for r in rows):
+        return ("No validation split (finetune.validation_frames / validation_clips = 0) or no validation "
+                f"{on} recorded: this sweep chooses nothing; its best-on-test row is a score, not a choice.")
+    pick = (min if on in LOWER_IS_BETTER else max)(rows, key=lambda r: r[key])
     pick["chosen"] = "chosen"
-    return ("chosen: the setting with the best mean validation PSNR (frames held out before the test frames, "
+    label = {"psnr": "PSNR", "st_lpips": "ST-LPIPS"}[on]
+    return (f"chosen: the setting with the best mean validation {label} (frames held out before the test frames, "
             "train.json); the test columns only score it.")
 
 
@@ -72,7 +76,8 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     for point in sweep.points:
         report = json.loads((folder / point.name / "eval.json").read_text())
         by_setting.setdefault(point.setting, []).append((point, *point_scores(sweep, report),
-                                                         validation_score(folder / point.name)))
+                                                         validation_score(folder / point.name),
+                                                         validation_score(folder / point.name, "st_lpips")))
     swept = [k for k in sweep.keys if k != SEED_KEY]
     sd, dof = pooled_sd([[s[1] for s in runs] for runs in by_setting.values()])
     rows = []
@@ -82,8 +87,10 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
         rows.append({**{k: v for k, v in setting}, "seeds": n, sweep.metric: mean, f"{sweep.metric}_ci95": ci,
                      "gain": gain, "gain_ci95": gain_ci, "best_baseline": runs[0][3], "baseline": runs[0][4],
                      **also_columns(sweep, runs), "values": [s[1] for s in runs],
-                     "validation_psnr": None if any(s[6] is None for s in runs) else mean_ci(s[6] for s in runs)[0]})
-    choice = mark_chosen(rows)
+                     "validation_psnr": None if any(s[6] is None for s in runs) else mean_ci(s[6] for s in runs)[0],
+                     "validation_st_lpips": None if any(s[7] is None for s in runs)
+                     else mean_ci(s[7] for s in runs)[0]})
+    choice = mark_chosen(rows, sweep.choose_on)
     lower = sweep.metric in LOWER_IS_BETTER
     best = (min if lower else max)(rows, key=lambda r: r[sweep.metric])
     threshold = single_run_threshold(sd)
@@ -95,8 +102,9 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
             limit = 1.96 * sd * ((1 / r["seeds"] + 1 / best["seeds"]) ** 0.5)
             r["differs_from_best"] = ("best" if r is best else
                                       "yes" if r["worse_than_best"] > limit else "no (within noise)")
-    columns = swept + ["seeds", "validation_psnr", "chosen", sweep.metric, f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline",
-                       "baseline", "worse_than_best", "differs_from_best"]
+    columns = swept + ["seeds", "validation_psnr", "validation_st_lpips", "chosen", sweep.metric,
+                       f"{sweep.metric}_ci95", "gain", "gain_ci95", "best_baseline", "baseline", "worse_than_best",
+                       "differs_from_best"]
     columns += [c for name in sweep.also for c in (name, f"{name}_ci95")]
     note = (f"{sweep.description or sweep.name}. {len(sweep.points)} points ({sweep.step}); metric: test "
             f"{sweep.metric} ({'lower' if lower else 'higher'} is better), mean over seeds with its 95 % CI (Student's "
@@ -109,7 +117,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     note += " " + choice
     if sweep.also:
         note += f" Beside it, each setting's mean and 95 % CI over seeds of: {', '.join(sweep.also)}."
-    shown = swept + ["seeds", "validation_psnr", "chosen", sweep.metric, "gain", "differs_from_best"]
+    shown = swept + ["seeds", f"validation_{sweep.choose_on}", "chosen", sweep.metric, "gain", "differs_from_best"]
     table = Table(f"sweep_{sweep.name}", f"Sweep {sweep.name}", columns, note,
                   shown=shown + list(sweep.also)[:max(0, MAX_SHOWN - len(shown))])
     for r in sorted(rows, key=lambda r: tuple(str(r[k]) for k in swept)):

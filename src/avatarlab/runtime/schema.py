@@ -249,6 +249,8 @@ class Finetune:
     lr_final: float = at_least(0)
     ema_decay: float = in_range(0, 1)
     fixed_codes: list[str] = MISSING
+    w_st_lpips: float = at_least(0)
+    st_lpips_crop: int = at_least(0)
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING
     z_aug_range: list[float] = MISSING

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from avatarlab.data.batches import Batch, BatchSource, BatchStream
 from avatarlab.data.schedule import Schedule
+from avatarlab.metrics.quality import STLPIPSDistance
 from avatarlab.model.head_nerf import HeadNeRFModel, assemble_codes
 from avatarlab.model.losses import composite, head_model_loss
 from avatarlab.runtime.config import autocast, grad_scaler
@@ -47,6 +48,8 @@ class Recipe:
     w_mse: float = 1.0
     w_perceptual: float = 0.1
     w_mask: float = 0.0  # not in eq. (8): L1 between the feature map's opacity and the head mask (0: off)
+    w_st_lpips: float = 0.0  # not in eq. (8): the ST-LPIPS distance between render and target (0: off)
+    st_lpips_crop: int = 0  # that term on one window of this many pixels per sample (0: the whole image)
     offset_weights: dict = field(default_factory=dict)
     checkpoint_every: int = 25
     log_every: int = 25
@@ -153,7 +156,8 @@ def batch_offsets(batch: Batch, offsets) -> dict[str, torch.Tensor]:
     return {k: offsets[k].index_select(0, rows) * real[:, None] for k in OFFSET_KEYS if k in offsets}
 
 
-def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Recipe, device) -> dict:
+def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Recipe, device,
+               st_lpips: STLPIPSDistance | None = None) -> dict:
     """One iteration of eq. (8): forward, loss, backward, Adam. -> the logged numbers."""
     off = batch_offsets(batch, offsets)
     geometry, appearance = assemble_codes(batch.params, batch.lighting, off)
@@ -168,6 +172,9 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
             coverage = F.adaptive_avg_pool2d(batch.masks, opacity.shape[-2:])
             terms["mask"] = recipe.w_mask * (opacity.float() - coverage).abs().mean()
             terms["total"] = terms["total"] + terms["mask"]
+        if st_lpips is not None:
+            terms["st_lpips"] = recipe.w_st_lpips * st_lpips.distance(pred, target, batch.masks)
+            terms["total"] = terms["total"] + terms["st_lpips"]
     scaler.scale(terms["total"]).backward()
     scaler.step(optim)
     scaler.update()
@@ -175,7 +182,8 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
         psnr = float(kornia.metrics.psnr(composite(pred, batch.masks), target, 1.0))
     return {"loss": float(terms["total"].detach()), "mse": float(terms["mse"].detach()),
             "perceptual": float(terms["perceptual"].detach()), "psnr": psnr, "p_synthetic": batch.p_synthetic,
-            "n_synthetic": batch.n_synthetic}
+            "n_synthetic": batch.n_synthetic,
+            **({"st_lpips_term": float(terms["st_lpips"].detach())} if st_lpips is not None else {})}
 
 
 def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, device: torch.device,
@@ -212,13 +220,16 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
     stream = BatchStream(source, step, recipe.schedule.N, g)
     net.train()
     net.nerf.compute_dtype = MLP_PRECISIONS[recipe.mlp_precision]
+    st_lpips = STLPIPSDistance(recipe.st_lpips_crop).to(device) if recipe.w_st_lpips > 0 else None
+    if st_lpips is not None:
+        log.info("loss: + %g x %s (not in eq. 8; also an evaluation metric)", recipe.w_st_lpips, st_lpips.name)
     try:
         t0 = time.perf_counter()
         while step < recipe.schedule.N:
             factor = lr_factor(recipe, step + 1)
             for group, base in zip(optim.param_groups, base_lrs):
                 group["lr"] = base * factor
-            entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device)
+            entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device, st_lpips)
             if not math.isfinite(entry["loss"]):
                 kept = (f"the last checkpoint, of iteration {saved_at}, is kept in {checkpoint.path}"
                         if saved_at is not None else "no checkpoint was written yet")

@@ -57,6 +57,7 @@ class Sweep:
     strategy: str | None = None
     parent: str | None = None
     description: str = ""
+    choose_on: str = "psnr"   # the validation score a fine-tuning sweep chooses its setting on (CHOOSE_ON)
 
 
 def _hashable(v):
@@ -96,6 +97,10 @@ def expand(overrides: dict) -> list[Point]:
     return points
 
 
+#: what a fine-tuning sweep may choose on: the validation frames' PSNR (higher is better) or ST-LPIPS (lower)
+CHOOSE_ON = ("psnr", "st_lpips")
+
+
 def load_sweep(path: str | Path, seeds: int | None = None) -> Sweep:
     """A sweep file, checked: one line naming the file and the problem when something is wrong. `seeds` (workflow
     config `sweep_seeds`) replaces the seed axis of a sweep that has one by seeds 0..seeds-1."""
@@ -123,10 +128,15 @@ def load_sweep(path: str | Path, seeds: int | None = None) -> Sweep:
     also = spec.get("also") or []
     if not isinstance(also, list) or not all(isinstance(m, str) for m in also):
         raise ConfigError(f"{path}: 'also' must be a list of metric names, not {also!r}")
+    choose_on = spec.get("choose_on", "psnr")
+    if choose_on not in CHOOSE_ON:
+        raise ConfigError(f"{path}: choose_on must be one of {', '.join(CHOOSE_ON)} (a validation score), "
+                          f"not {choose_on!r}")
     return Sweep(name=path.stem, step=step, points=tuple(points), keys=tuple(overrides), metric=metric,
                  also=tuple(m for m in also if m != metric),
                  subject=spec.get("subject"), init=spec.get("init"), recipe=spec.get("recipe", "base"),
-                 strategy=spec.get("strategy"), parent=spec.get("parent"), description=spec.get("description", ""))
+                 strategy=spec.get("strategy"), parent=spec.get("parent"), description=spec.get("description", ""),
+                 choose_on=choose_on)
 
 
 def load_sweeps(folder: str | Path = SWEEP_DIR, seeds: int | None = None) -> dict[str, Sweep]:
