@@ -83,6 +83,46 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
     return table, base
 
 
+def sharpness_table(avatars: list[dict], final: str) -> Table:
+    """The final avatars beside a copied training frame, every seed: ST-LPIPS against the nearest training frame's
+    (gain = nearest - avatar, > 0: the avatar is closer to the truth in texture), and dlib's identity similarity
+    against the mean and the nearest frame's."""
+    table = Table("final_avatar_sharpness", "Final-recipe avatars beside a copied training frame: ST-LPIPS (lower is "
+                  "closer) and identity similarity (mean over seeds, 95 % CI)",
+                  ["subject", "seeds", "st_lpips", "st_lpips_ci95", "nearest_st_lpips", "gain", "gain_ci95",
+                   "seeds_below_nearest", "identity_similarity", "identity_similarity_ci95", "mean_frame_identity",
+                   "nearest_identity", "face_detection_rate", "landmark_nme"],
+                  "The same test frames as the table above. nearest_*: the training frame nearest in fitted "
+                  "expression, jaw, neck and camera, copied (the baselines do not depend on the seed); gain: its "
+                  "ST-LPIPS minus the avatar's, with the 95 % CI over seeds; seeds_below_nearest: the seeds whose "
+                  "avatar scores below it. identity_similarity: dlib's face descriptors of render and truth (cosine), "
+                  "beside the mean frame's and the nearest frame's; dlib is not trained with the avatar, ST-LPIPS "
+                  "may be (finetune.w_st_lpips).",
+                  shown=["subject", "st_lpips", "nearest_st_lpips", "gain", "seeds_below_nearest",
+                         "identity_similarity", "mean_frame_identity", "nearest_identity"],
+                  headline=Headline("gain", ("subject",), baseline=None, each=True,
+                                    versus="the nearest training frame in ST-LPIPS"))
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
+        runs = seeded_runs(avatars, subject, "final", final)
+        models = [a["eval"]["all"]["model"] for a in runs]
+        bases = runs[0]["eval"]["all"]["baselines"] if runs else {}
+        nearest = (bases.get("nearest") or {}).get("st_lpips")
+        if not runs or nearest is None or any(m.get("st_lpips") is None for m in models):
+            continue
+        row = {"subject": subject, "seeds": len(runs), "nearest_st_lpips": nearest,
+               "seeds_below_nearest": f"{sum(m['st_lpips'] < nearest for m in models)} of {len(runs)}",
+               "mean_frame_identity": (bases.get("mean_frame") or {}).get("identity_similarity"),
+               "nearest_identity": (bases.get("nearest") or {}).get("identity_similarity")}
+        row["st_lpips"], row["st_lpips_ci95"], _ = mean_ci(m["st_lpips"] for m in models)
+        row["gain"], row["gain_ci95"], _ = mean_ci(nearest - m["st_lpips"] for m in models)
+        row["identity_similarity"], row["identity_similarity_ci95"], _ = mean_ci(
+            m.get("identity_similarity") for m in models)
+        row["face_detection_rate"] = mean_ci(m.get("face_detection_rate") for m in models)[0]
+        row["landmark_nme"] = mean_ci(m.get("landmark_nme") for m in models)[0]
+        table.add(**row)
+    return table
+
+
 def alpha_table(avatars: list[dict]) -> Table:
     table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
                   "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,

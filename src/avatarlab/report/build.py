@@ -26,6 +26,7 @@ from avatarlab.report.avatar_tables import (
     comparison_table,
     final_avatar_table,
     interp_table,
+    sharpness_table,
     stage2_table,
 )
 from avatarlab.report.claims import claims_table
@@ -87,7 +88,7 @@ def write_report(tree: ResultsTree, out: Path, final: str, scale: str) -> dict:
     finals, final_baselines = final_avatar_table(avatars, final)
     tables = [preprocessing_table(tree), pretraining_table(tree), controls_table(tree),
               renderer_table(tree), finals,
-              final_baselines, alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
+              final_baselines, sharpness_table(avatars, final), alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
               stage2_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), claims_table(tree, avatars, final, scale),
               applications_table(tree), speech_table(tree, scale), speech_timing_table(tree),
