@@ -281,7 +281,7 @@ def test_head_windows_lie_inside_the_image_around_the_head():
     images = torch.rand(64, 3, 40, 50)
     mask = torch.zeros(64, 1, 40, 50)
     mask[:, :, 30:34, 40:44] = 1  # a small head near the bottom-right corner
-    corners = head_patches(images, mask, 16, generator=torch.Generator().manual_seed(0))
+    corners = head_patches(mask, 16, generator=torch.Generator().manual_seed(0))
     assert corners.shape == (64, 2)
     assert (corners[:, 0] >= 0).all() and (corners[:, 0] <= 40 - 16).all()
     assert (corners[:, 1] >= 0).all() and (corners[:, 1] <= 50 - 16).all()

@@ -112,7 +112,7 @@ class STLPIPSDistance(torch.nn.Module):
 
     def distance(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         if 0 < self.crop < min(pred.shape[-2:]):
-            corners = head_patches(pred, torch.ones_like(pred[:, :1]) if mask is None else mask, self.crop)
+            corners = head_patches(torch.ones_like(pred[:, :1]) if mask is None else mask, self.crop)
             pred, target = crop_at(pred, corners, self.crop), crop_at(target, corners, self.crop)
         return self.model(pred, target, normalize=True).mean()
 

@@ -81,10 +81,10 @@ class RandomConvFeatures(FeatureDistance):
         return out
 
 
-def head_patches(images: torch.Tensor, mask: torch.Tensor, size: int, generator=None) -> torch.Tensor:
-    """One square window of `size` pixels per sample, centred on a pixel drawn from the sample's mask (uniformly
-    where the mask is empty) and moved inside the image -> (row, column) offsets (B, 2)."""
-    b, _, h, w = images.shape
+def head_patches(mask: torch.Tensor, size: int, generator=None) -> torch.Tensor:
+    """One square window of `size` pixels per sample of `mask` (B, 1, H, W), centred on a pixel drawn from the mask
+    (uniformly where it is empty) and moved inside the image -> (row, column) offsets (B, 2)."""
+    b, _, h, w = mask.shape
     weights = mask.reshape(b, -1).float() + 1e-6
     flat = torch.multinomial(weights, 1, generator=generator)[:, 0]
     rows = (flat // w - size // 2).clamp(0, h - size)
