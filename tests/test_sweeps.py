@@ -170,12 +170,12 @@ def test_a_sweep_chooses_on_validation_and_the_test_only_scores(tmp_path):
     assert chosen[0]["validation_psnr"] == pytest.approx(25.005)
     assert chosen[0]["differs_from_best"] != "best"  # the test's best is the other one: a score, not the choice
     assert "best mean validation PSNR" in table.note and "| chosen |" in table.markdown()
-    from avatarlab.report.sweep_report import validation_score
+    from avatarlab.report.sweep_report import validation_scores
 
     point = folder / sweep.points[0].name  # a train.json with the scores only: the chosen step's
     (point / "train.json").write_text(json.dumps({"chosen_step": 300, "validation_scores": [
         {"step": 300, "psnr": 22.4}, {"step": 600, "psnr": 22.1}]}))
-    assert validation_score(point) == 22.4
+    assert validation_scores(point)["psnr"] == 22.4
 
 
 def test_a_sweep_may_choose_on_validation_st_lpips(tmp_path):

@@ -17,7 +17,7 @@ from avatarlab.metrics.seeds import mean_ci, pooled_sd, single_run_threshold
 from avatarlab.report.figures import save_figure
 from avatarlab.report.table import MAX_SHOWN, Table
 from avatarlab.runtime.io import atomic_path
-from avatarlab.workflow.sweeps import SEED_KEY, Sweep, load_sweep
+from avatarlab.workflow.sweeps import CHOOSE_ON, SEED_KEY, Sweep, load_sweep
 
 log = logging.getLogger(__name__)
 
@@ -41,17 +41,14 @@ def also_columns(sweep: Sweep, runs: list) -> dict:
     return out
 
 
-def validation_score(folder: Path, on: str = "psnr") -> float | None:
-    """The validation score (`on`: psnr or st_lpips) of the avatar a fine-tuning point chose (its train.json), None
-    without a validation split or where that score was not recorded."""
+def validation_scores(folder: Path) -> dict[str, float | None]:
+    """The validation scores (CHOOSE_ON: psnr, st_lpips) of the avatar a fine-tuning point chose (its train.json, read
+    once); None without a validation split or where a score was not recorded."""
     path = folder / "train.json"
-    if not path.is_file():
-        return None
-    report = json.loads(path.read_text())
-    if report.get(f"validation_{on}") is not None:
-        return report[f"validation_{on}"]
-    chosen = [s.get(on) for s in report.get("validation_scores") or [] if s.get("step") == report.get("chosen_step")]
-    return chosen[0] if chosen else None
+    report = json.loads(path.read_text()) if path.is_file() else {}
+    chosen = [s for s in report.get("validation_scores") or [] if s.get("step") == report.get("chosen_step")]
+    return {on: report[f"validation_{on}"] if report.get(f"validation_{on}") is not None
+            else (chosen[0].get(on) if chosen else None) for on in CHOOSE_ON}
 
 
 def mark_chosen(rows: list[dict], on: str = "psnr") -> str:
@@ -76,8 +73,7 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
     for point in sweep.points:
         report = json.loads((folder / point.name / "eval.json").read_text())
         by_setting.setdefault(point.setting, []).append((point, *point_scores(sweep, report),
-                                                         validation_score(folder / point.name),
-                                                         validation_score(folder / point.name, "st_lpips")))
+                                                         validation_scores(folder / point.name)))
     swept = [k for k in sweep.keys if k != SEED_KEY]
     sd, dof = pooled_sd([[s[1] for s in runs] for runs in by_setting.values()])
     rows = []
@@ -87,9 +83,8 @@ def summarise(sweep: Sweep, folder: Path) -> tuple[Table, list[dict]]:
         rows.append({**{k: v for k, v in setting}, "seeds": n, sweep.metric: mean, f"{sweep.metric}_ci95": ci,
                      "gain": gain, "gain_ci95": gain_ci, "best_baseline": runs[0][3], "baseline": runs[0][4],
                      **also_columns(sweep, runs), "values": [s[1] for s in runs],
-                     "validation_psnr": None if any(s[6] is None for s in runs) else mean_ci(s[6] for s in runs)[0],
-                     "validation_st_lpips": None if any(s[7] is None for s in runs)
-                     else mean_ci(s[7] for s in runs)[0]})
+                     **{f"validation_{on}": None if any(s[6][on] is None for s in runs)
+                        else mean_ci(s[6][on] for s in runs)[0] for on in CHOOSE_ON}})
     choice = mark_chosen(rows, sweep.choose_on)
     lower = sweep.metric in LOWER_IS_BETTER
     best = (min if lower else max)(rows, key=lambda r: r[sweep.metric])
