@@ -87,8 +87,8 @@ def write_report(tree: ResultsTree, out: Path, final: str, scale: str) -> dict:
     avatars = load_avatars(tree)
     finals, final_baselines = final_avatar_table(avatars, final)
     tables = [preprocessing_table(tree), pretraining_table(tree), controls_table(tree),
-              renderer_table(tree), finals,
-              final_baselines, sharpness_table(avatars, final), alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
+              renderer_table(tree), finals, final_baselines, sharpness_table(avatars, final),
+              alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
               stage2_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), claims_table(tree, avatars, final, scale),
               applications_table(tree), speech_table(tree, scale), speech_timing_table(tree),
