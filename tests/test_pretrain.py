@@ -263,7 +263,9 @@ def test_st_lpips_term_is_a_differentiable_distance():
     target = torch.nn.functional.avg_pool2d(target, 3, 1, 1)  # some structure at several scales
     mask = torch.zeros(2, 1, 64, 64)
     mask[:, :, 16:48, 16:48] = 1
+    before = torch.get_rng_state()
     whole = STLPIPSDistance()
+    assert torch.equal(torch.get_rng_state(), before), "building it must not move the run's random stream (resumes)"
     assert not any(p.requires_grad for p in whole.parameters())
     assert float(whole.distance(target, target, mask)) == pytest.approx(0.0, abs=1e-6)
     blurred = torch.nn.functional.avg_pool2d(target, 7, 1, 3)

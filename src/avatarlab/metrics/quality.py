@@ -106,7 +106,8 @@ class STLPIPSDistance(torch.nn.Module):
 
     def __init__(self, crop: int = 0):
         super().__init__()
-        self.model = STLPIPS().model
+        with torch.random.fork_rng(devices=[]):  # building AlexNet draws random weights: leave the run's stream alone
+            self.model = STLPIPS().model
         self.crop = int(crop)
         self.name = "ST-LPIPS AlexNet (stlpips-pytorch wheel)" + (f", {self.crop}-pixel head windows" if crop else "")
 
