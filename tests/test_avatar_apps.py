@@ -114,31 +114,48 @@ def test_report_tables_carry_baselines_label_published_rows_and_never_invent_num
 
 def test_the_sharpness_table_puts_every_seed_beside_the_nearest_training_frame():
     """The card's bar for a sharp avatar: its ST-LPIPS over seeds against the copied nearest frame's (gain =
-    nearest - avatar with its CI, how many seeds are below), and identity beside the mean and nearest frames'."""
-    from avatarlab.report.avatar_tables import sharpness_table
+    nearest - avatar with its CI, how many seeds are below); the face table scores the same renders with dlib:
+    landmark error and identity beside the mean and nearest frames'."""
+    from avatarlab.report.avatar_tables import face_table, sharpness_table
 
     avatars = []
-    for seed, (st, identity) in enumerate([(0.15, 0.93), (0.17, 0.95), (0.22, 0.94)]):
+    for seed, (st, identity, nme) in enumerate([(0.15, 0.93, 0.10), (0.17, 0.95, 0.12), (0.22, 0.94, None)]):
         a = avatar("obama", "final", "beta6_from_alpha2", "a", 22.0)
         a["seed"] = seed
         part = a["eval"]["all"]
-        part["model"] = dict(part["model"], st_lpips=st, identity_similarity=identity)
-        part["baselines"] = dict(part["baselines"], nearest=dict(part["model"], st_lpips=0.19, identity_similarity=0.96),
-                                 mean_frame=dict(part["model"], identity_similarity=0.92))
+        part["model"] = dict(part["model"], st_lpips=st, identity_similarity=identity, landmark_nme=nme,
+                             face_detection_rate=0.0 if nme is None else 1.0)
+        part["baselines"] = dict(part["baselines"], nearest=dict(part["model"], st_lpips=0.19, identity_similarity=0.96,
+                                                                 landmark_nme=0.15),
+                                 mean_frame=dict(part["model"], identity_similarity=0.92, landmark_nme=0.13))
         avatars.append(a)
     blurred = avatar("talk", "final", "beta6_from_alpha2", "a", 28.0)  # 0.3 against a nearest frame of 0.02
     blurred["eval"]["all"]["baselines"]["nearest"] = dict(blurred["eval"]["all"]["model"], st_lpips=0.02)
-    table = sharpness_table(avatars + [blurred, avatar("s", "base", "alpha1", "a", 20.0)], "beta6_from_alpha2")
+    blurred["eval"]["all"]["model"] = {k: v for k, v in blurred["eval"]["all"]["model"].items()
+                                       if k not in ("face_detection_rate", "landmark_nme", "identity_similarity")}
+    others = [blurred, avatar("s", "base", "alpha1", "a", 20.0)]
+    table = sharpness_table(avatars + others, "beta6_from_alpha2")
     obama, talk = table.rows
     assert obama["seeds"] == 3 and obama["seeds_below_nearest"] == "2 of 3"
     assert obama["st_lpips"] == pytest.approx(0.18) and obama["nearest_st_lpips"] == 0.19
     assert obama["gain"] == pytest.approx(0.01) and obama["gain_ci95"] > 0.01, "one seed above: within the noise"
-    assert obama["identity_similarity"] == pytest.approx(0.94) and obama["mean_frame_identity"] == 0.92
-    assert obama["nearest_identity"] == 0.96
     assert talk["seeds_below_nearest"] == "0 of 1" and talk["gain"] == pytest.approx(-0.28)
     sentence = table.sentence()
     assert sentence == ("obama is ahead of the nearest training frame in ST-LPIPS by 0.010, within the noise (95 % CI "
                         "±0.090); talk does NOT beat the nearest training frame in ST-LPIPS (-0.280).")
+    faces = face_table(avatars + others, "beta6_from_alpha2")
+    assert [r["subject"] for r in faces.rows] == ["obama"], "a subject without dlib scores has no face row"
+    obama = faces.rows[0]
+    assert obama["face_detection_rate"] == pytest.approx(2 / 3), "the seed where dlib found no face counts"
+    assert obama["landmark_nme"] == pytest.approx(0.11), "NME over the seeds with a face found"
+    assert obama["mean_frame_nme"] == 0.13 and obama["nearest_nme"] == 0.15
+    assert obama["nme_gain"] == pytest.approx(0.04) and obama["nme_gain_ci95"] is not None
+    assert obama["identity_similarity"] == pytest.approx(0.94) and obama["mean_frame_identity"] == 0.92
+    assert obama["nearest_identity"] == 0.96
+    shown, _ = faces.visible()
+    assert shown == ["subject", "face_detection_rate", "landmark_nme", "mean_frame_nme", "nearest_nme",
+                     "identity_similarity", "mean_frame_identity", "nearest_identity"]
+    assert faces.sentence().startswith("obama is ahead of the nearest training frame in landmark error by 0.04")
 
 
 def test_a_table_shows_eight_columns_rounded_to_its_noise_and_says_which_row_is_best():

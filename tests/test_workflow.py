@@ -380,7 +380,7 @@ def test_results_card(smoke_run, workdir, tmp_path):
     assert results_card.numbers_not_in("a made-up 31.4159 dB", card) == ["31.4159"]
     # the HTML report's landing page shows the same tables, rendered (not a download)
     landing = (smoke_run / "smoke" / "report" / "landing.html").read_text()
-    assert landing.count("<table>") == 7 and f"<td>{finals[0]['subject']}</td>" in landing
+    assert landing.count("<table>") == 8 and f"<td>{finals[0]['subject']}</td>" in landing
     report = tmp_path / "report.html"
     run_snakemake(workdir, "--report", str(report), "--config", "scale=smoke", "seeds=2", "threads_per_job=1")
     page = report.read_text()

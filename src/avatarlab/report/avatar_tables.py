@@ -83,43 +83,72 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
     return table, base
 
 
+def final_seeds(avatars: list[dict], final: str):
+    """(subject, its final avatars' runs over seeds, their test scores, the baselines' test scores) per subject."""
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
+        runs = seeded_runs(avatars, subject, "final", final)
+        if runs:
+            yield subject, runs, [a["eval"]["all"]["model"] for a in runs], runs[0]["eval"]["all"]["baselines"]
+
+
 def sharpness_table(avatars: list[dict], final: str) -> Table:
     """The final avatars beside a copied training frame, every seed: ST-LPIPS against the nearest training frame's
-    (gain = nearest - avatar, > 0: the avatar is closer to the truth in texture), and dlib's identity similarity
-    against the mean and the nearest frame's."""
+    (gain = nearest - avatar, > 0: the avatar is closer to the truth in texture)."""
     table = Table("final_avatar_sharpness", "Final-recipe avatars beside a copied training frame: ST-LPIPS (lower is "
-                  "closer) and identity similarity (mean over seeds, 95 % CI)",
+                  "closer; mean over seeds, 95 % CI)",
                   ["subject", "seeds", "st_lpips", "st_lpips_ci95", "nearest_st_lpips", "gain", "gain_ci95",
-                   "seeds_below_nearest", "identity_similarity", "identity_similarity_ci95", "mean_frame_identity",
-                   "nearest_identity", "face_detection_rate", "landmark_nme"],
+                   "seeds_below_nearest"],
                   "The same test frames as the table above. nearest_*: the training frame nearest in fitted "
                   "expression, jaw, neck and camera, copied (the baselines do not depend on the seed); gain: its "
                   "ST-LPIPS minus the avatar's, with the 95 % CI over seeds; seeds_below_nearest: the seeds whose "
-                  "avatar scores below it. identity_similarity: dlib's face descriptors of render and truth (cosine), "
-                  "beside the mean frame's and the nearest frame's; dlib is not trained with the avatar, ST-LPIPS "
-                  "may be (finetune.w_st_lpips).",
-                  shown=["subject", "st_lpips", "nearest_st_lpips", "gain", "seeds_below_nearest",
-                         "identity_similarity", "mean_frame_identity", "nearest_identity"],
+                  "avatar scores below it. ST-LPIPS may also train the avatar (finetune.w_st_lpips): the next table "
+                  "scores the renders with dlib, which does not.",
                   headline=Headline("gain", ("subject",), baseline=None, each=True,
                                     versus="the nearest training frame in ST-LPIPS"))
-    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
-        runs = seeded_runs(avatars, subject, "final", final)
-        models = [a["eval"]["all"]["model"] for a in runs]
-        bases = runs[0]["eval"]["all"]["baselines"] if runs else {}
+    for subject, runs, models, bases in final_seeds(avatars, final):
         nearest = (bases.get("nearest") or {}).get("st_lpips")
-        if not runs or nearest is None or any(m.get("st_lpips") is None for m in models):
+        if nearest is None or any(m.get("st_lpips") is None for m in models):
             continue
         row = {"subject": subject, "seeds": len(runs), "nearest_st_lpips": nearest,
-               "seeds_below_nearest": f"{sum(m['st_lpips'] < nearest for m in models)} of {len(runs)}",
-               "mean_frame_identity": (bases.get("mean_frame") or {}).get("identity_similarity"),
-               "nearest_identity": (bases.get("nearest") or {}).get("identity_similarity")}
+               "seeds_below_nearest": f"{sum(m['st_lpips'] < nearest for m in models)} of {len(runs)}"}
         row["st_lpips"], row["st_lpips_ci95"], _ = mean_ci(m["st_lpips"] for m in models)
         row["gain"], row["gain_ci95"], _ = mean_ci(nearest - m["st_lpips"] for m in models)
+        table.add(**row)
+    return table
+
+
+def face_table(avatars: list[dict], final: str) -> Table:
+    """The final avatars as faces, judged by dlib (never trained with them): the detection rate on the renders, the
+    68-point landmark error (NME) and the identity similarity, each beside the mean and the nearest training frame's
+    (nme_gain = nearest - avatar, > 0: the avatar's features lie closer to the truth's)."""
+    table = Table("final_avatar_faces", "Final-recipe avatars as faces: dlib's landmark error (NME, lower is better) "
+                  "and identity similarity beside the copied frames' (mean over seeds, 95 % CI)",
+                  ["subject", "seeds", "face_detection_rate", "landmark_nme", "landmark_nme_ci95", "mean_frame_nme",
+                   "nearest_nme", "nme_gain", "nme_gain_ci95", "identity_similarity", "identity_similarity_ci95",
+                   "mean_frame_identity", "nearest_identity"],
+                  "The same test frames. face_detection_rate: the share of renders where dlib finds a face; "
+                  "landmark_nme: its 68 points against the frame's tracked landmarks, outer-eye normalised, over the "
+                  "renders where a face is found; identity_similarity: the cosine of dlib's face descriptors of "
+                  "render and truth. A sharp render with its features in the wrong place scores a low ST-LPIPS "
+                  "(shift-tolerant) but a high NME.",
+                  shown=["subject", "face_detection_rate", "landmark_nme", "mean_frame_nme", "nearest_nme",
+                         "identity_similarity", "mean_frame_identity", "nearest_identity"],
+                  headline=Headline("nme_gain", ("subject",), gain="nme_gain", gain_ci="nme_gain_ci95",
+                                    baseline=None, each=True, versus="the nearest training frame in landmark error"))
+    for subject, runs, models, bases in final_seeds(avatars, final):
+        mean_frame, nearest = bases.get("mean_frame") or {}, bases.get("nearest") or {}
+        row = {"subject": subject, "seeds": len(runs), "mean_frame_nme": mean_frame.get("landmark_nme"),
+               "nearest_nme": nearest.get("landmark_nme"), "mean_frame_identity": mean_frame.get("identity_similarity"),
+               "nearest_identity": nearest.get("identity_similarity")}
+        row["face_detection_rate"] = mean_ci(m.get("face_detection_rate") for m in models)[0]
+        row["landmark_nme"], row["landmark_nme_ci95"], _ = mean_ci(m.get("landmark_nme") for m in models)
+        if row["nearest_nme"] is not None:
+            row["nme_gain"], row["nme_gain_ci95"], _ = mean_ci(
+                row["nearest_nme"] - m["landmark_nme"] for m in models if m.get("landmark_nme") is not None)
         row["identity_similarity"], row["identity_similarity_ci95"], _ = mean_ci(
             m.get("identity_similarity") for m in models)
-        row["face_detection_rate"] = mean_ci(m.get("face_detection_rate") for m in models)[0]
-        row["landmark_nme"] = mean_ci(m.get("landmark_nme") for m in models)[0]
-        table.add(**row)
+        if row["face_detection_rate"] is not None:
+            table.add(**row)
     return table
 
 
