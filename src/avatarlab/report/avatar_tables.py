@@ -50,6 +50,14 @@ def avatar_row(avatar: dict, part: str = "all") -> dict:
             "identity_similarity": m.get("identity_similarity"), "train_seconds": avatar["train"]["train_seconds"]}
 
 
+def final_seeds(avatars: list[dict], final: str):
+    """(subject, its final avatars' runs over seeds, their test scores, the baselines' test scores) per subject."""
+    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
+        runs = seeded_runs(avatars, subject, "final", final)
+        if runs:
+            yield subject, runs, [a["eval"]["all"]["model"] for a in runs], runs[0]["eval"]["all"]["baselines"]
+
+
 def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
     table = Table("final_avatars", "Final-recipe avatars on their test frames, beside trivial baselines "
                   "(mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS + ["split"],
@@ -63,10 +71,8 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
                   "colour, which a clip never seen can have its own of.",
                   shown=["subject", "seeds", "test_frames", "psnr", "baseline_psnr", "gain", "ssim", "st_lpips"],
                   headline=Headline("psnr", ("subject",), each=True))
-    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
-        runs = seeded_runs(avatars, subject, "final", final)
-        if runs:
-            table.add(**seeded_row(runs), split=runs[0]["eval"].get("split"))
+    for _, runs, _, _ in final_seeds(avatars, final):
+        table.add(**seeded_row(runs), split=runs[0]["eval"].get("split"))
     base = Table("final_avatar_baselines", "The same test frames, scored for each trivial baseline",
                  ["subject", "predictor", "psnr", "psnr_head", "psnr_head_colour", "ssim", "st_lpips",
                   "face_detection_rate", "landmark_nme", "identity_similarity"],
@@ -81,14 +87,6 @@ def final_avatar_table(avatars: list[dict], final: str) -> tuple[Table, Table]:
                 base.add(subject=a["subject"], predictor=name, **{k: scores.get(k) for k in base.columns[2:]})
     table.note += " " + not_beating(table, ("subject",))
     return table, base
-
-
-def final_seeds(avatars: list[dict], final: str):
-    """(subject, its final avatars' runs over seeds, their test scores, the baselines' test scores) per subject."""
-    for subject in sorted({a["subject"] for a in avatars if a["recipe"] == "final" and a["init"] == final}):
-        runs = seeded_runs(avatars, subject, "final", final)
-        if runs:
-            yield subject, runs, [a["eval"]["all"]["model"] for a in runs], runs[0]["eval"]["all"]["baselines"]
 
 
 def sharpness_table(avatars: list[dict], final: str) -> Table:
@@ -136,19 +134,21 @@ def face_table(avatars: list[dict], final: str) -> Table:
                   headline=Headline("nme_gain", ("subject",), gain="nme_gain", gain_ci="nme_gain_ci95",
                                     baseline=None, each=True, versus="the nearest training frame in landmark error"))
     for subject, runs, models, bases in final_seeds(avatars, final):
+        detection = mean_ci(m.get("face_detection_rate") for m in models)[0]
+        if detection is None:  # dlib was not run on this subject's renders
+            continue
         mean_frame, nearest = bases.get("mean_frame") or {}, bases.get("nearest") or {}
-        row = {"subject": subject, "seeds": len(runs), "mean_frame_nme": mean_frame.get("landmark_nme"),
-               "nearest_nme": nearest.get("landmark_nme"), "mean_frame_identity": mean_frame.get("identity_similarity"),
+        row = {"subject": subject, "seeds": len(runs), "face_detection_rate": detection,
+               "mean_frame_nme": mean_frame.get("landmark_nme"), "nearest_nme": nearest.get("landmark_nme"),
+               "mean_frame_identity": mean_frame.get("identity_similarity"),
                "nearest_identity": nearest.get("identity_similarity")}
-        row["face_detection_rate"] = mean_ci(m.get("face_detection_rate") for m in models)[0]
         row["landmark_nme"], row["landmark_nme_ci95"], _ = mean_ci(m.get("landmark_nme") for m in models)
         if row["nearest_nme"] is not None:
             row["nme_gain"], row["nme_gain_ci95"], _ = mean_ci(
                 row["nearest_nme"] - m["landmark_nme"] for m in models if m.get("landmark_nme") is not None)
         row["identity_similarity"], row["identity_similarity_ci95"], _ = mean_ci(
             m.get("identity_similarity") for m in models)
-        if row["face_detection_rate"] is not None:
-            table.add(**row)
+        table.add(**row)
     return table
 
 
