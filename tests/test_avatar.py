@@ -386,28 +386,29 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
         "the last-frame baseline copies frame 7 (a validation frame), not frame 5"
 
 
-def test_the_st_lpips_term_joins_the_loss_only_when_weighted(tmp_path, parent_model):
-    """finetune.w_st_lpips > 0 adds the ST-LPIPS term (on head windows with st_lpips_crop) to eq. (8): each logged
-    loss is the sum of its terms; at 0 (the default) the term is absent and the loss is eq. (8) alone."""
+def test_the_st_lpips_and_distortion_terms_join_the_loss_only_when_weighted(tmp_path, parent_model):
+    """finetune.w_st_lpips > 0 adds the ST-LPIPS term (on head windows with st_lpips_crop) to eq. (8), and
+    finetune.w_distortion > 0 the rays' distortion term: each logged loss is the sum of its terms; at 0 (the defaults)
+    the terms are absent and the loss is eq. (8) alone."""
     from avatarlab.avatar import finetune
 
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
-    for weight, crop in ((0.0, 0), (0.5, 32)):
-        out = tmp_path / f"avatar_{weight}"
+    for weight, crop, distortion in ((0.0, 0, 0.0), (0.5, 32, 0.0), (0.0, 0, 0.5)):
+        out = tmp_path / f"avatar_{weight}_{distortion}"
         cfg = step_cfg(finetune, tiny_model_overrides() + [
             f"finetune.subject_dir={subject}", "finetune.test_frames=2", f"finetune.out_dir={out}",
             f"finetune.init_model={path}", "finetune.iterations=3", "finetune.log_every=1",
-            f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}"])
+            f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}", f"finetune.w_distortion={distortion}"])
         _, _, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
         history = report["history"]
         assert len(history) == 3
-        if weight == 0:
-            assert all("st_lpips_term" not in h for h in history)
-        else:
-            assert all(h["st_lpips_term"] > 0 for h in history)
-            for h in history:  # no offsets are learned for the fixed codes here: loss = mse + perceptual + st_lpips
-                assert h["loss"] == pytest.approx(h["mse"] + h["perceptual"] + h["st_lpips_term"], rel=1e-4, abs=1e-6)
+        assert all(("st_lpips_term" in h) == (weight > 0) for h in history)
+        assert all(("distortion_term" in h) == (distortion > 0) for h in history)
+        for h in history:  # loss = eq. (8)'s mse + perceptual + offsets, + the extras
+            extras = h.get("st_lpips_term", 0.0) + h.get("distortion_term", 0.0)
+            assert extras > 0 or weight == distortion == 0
+            assert h["loss"] == pytest.approx(h["mse"] + h["perceptual"] + h["offsets"] + extras, rel=1e-5, abs=1e-7)
 
 
 @pytest.mark.slow

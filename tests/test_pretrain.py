@@ -12,6 +12,7 @@ from avatarlab.model.cnerf import (
     camera_rays,
     head_bounds,
     positional_encoding,
+    ray_distortion,
     ray_samples,
     sphere_interval,
     volume_render_features,
@@ -233,6 +234,26 @@ def test_every_posed_head_lies_inside_its_rays_interval(head_model):
     z = cam_pts[..., 2]
     assert hit.all() and (z >= near - 1e-5).all() and (z <= far + 1e-5).all()
     assert radius < 0.3, "a tight sphere: samples are spent on the head, not on empty space"
+
+
+def test_ray_distortion_is_low_for_a_surface_and_not_lowered_by_transparency():
+    """`finetune.w_distortion`'s term: a ray whose weight sits in one bin scores below one whose weight is spread
+    along it; scaling a ray's density down (more transparent, same shape) does not lower it below the same shape at
+    full opacity divided by that opacity (the opacity is held fixed in it), and its gradient reaches the density."""
+    depths = torch.linspace(1.0, 1.3, 16)[None].expand(2, -1)
+    near, far = torch.full((2,), 1.0), torch.full((2,), 1.3)
+    surface = torch.zeros(2, 16)
+    surface[:, 8] = 1e4
+    spread = torch.full((2, 16), 20.0)
+    thin, thick = ray_distortion(surface, depths, near, far), ray_distortion(spread, depths, near, far)
+    assert float(thin.max()) < 0.03 < 0.15 < float(thick.min())
+    faint = spread * 0.05
+    opacity = lambda s: 1 - torch.exp(-(s * 0.02).sum(-1))  # noqa: E731  (bins 2 cm apart)
+    per_opacity = ray_distortion(faint, depths, near, far) / opacity(faint)
+    assert float(per_opacity.min()) > 0.2, "a transparent spread ray still pays for its spread"
+    sigma = spread.clone().requires_grad_(True)
+    ray_distortion(sigma, depths, near, far).sum().backward()
+    assert sigma.grad is not None and float(sigma.grad.abs().sum()) > 0
 
 
 def test_eq8_offsets_only_for_real_samples(tmp_path):

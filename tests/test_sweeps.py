@@ -34,6 +34,9 @@ def test_the_shipped_sweeps_load():
     lr = sweeps["finetune_lr"]
     assert lr.step == "finetune" and len(lr.points) == 9 and lr.subject == "synth_talk"
     assert sweeps["beta4_pmax"].parent == "alpha1" and len(sweeps["beta4_pmax"].points) == 6
+    distortion = sweeps["finetune_distortion"]
+    assert (distortion.recipe, distortion.subject, len(distortion.points)) == ("final", "obama", 9)
+    assert {p.values["finetune.w_distortion"] for p in distortion.points} == {0.0, 0.02, 0.1}
     # workflow config sweep_seeds: the seed axis of every sweep that has one, and nothing else
     fewer = load_sweeps(seeds=2)
     assert len(fewer["finetune_lr"].points) == 6 and {p.seed for p in fewer["finetune_lr"].points} == {0, 1}

@@ -180,6 +180,28 @@ def volume_render_features(sigma: torch.Tensor, features: torch.Tensor, depths: 
     return (weights[..., None] * features).sum(-2), weights.sum(-1)
 
 
+def ray_distortion(sigma: torch.Tensor, depths: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """Mip-NeRF 360's distortion loss (Barron et al. 2022, eq. 15) per ray, on the ray's interval normalised to
+    [0, 1] and on the ray's weights normalised to sum 1: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (s_i+1 - s_i),
+    w the compositing weights of eq. (7) over their sum, m the bins' midpoints; times the ray's opacity, held fixed.
+    Small when a ray's weight sits in one thin layer (a surface); large when it is spread along the ray, which renders
+    a feature at several depths - copies of it under a new view. Normalised, so that making a ray transparent does
+    not lower it (the 2D renderer could still read a transparent ray's features).
+    sigma, depths (R, N); near, far (R,) -> (R,)."""
+    span = (far - near).clamp(min=1e-6)[:, None]
+    s = (depths - near[:, None]) / span
+    steps = depths[..., 1:] - depths[..., :-1]
+    delta = torch.cat([steps, steps[..., -1:]], -1)
+    alpha = 1.0 - torch.exp(-sigma * delta)
+    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha + 1e-10], -1), -1)[..., :-1]
+    w = alpha * transmittance
+    opacity = w.sum(-1)
+    w = w / opacity.clamp(min=1e-6)[:, None]
+    width = delta / span
+    pairwise = (w[:, :, None] * w[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum((1, 2))
+    return (pairwise + (w**2 * width).sum(-1) / 3) * opacity.detach()
+
+
 def ray_samples(near: torch.Tensor, far: torch.Tensor, count: int, stratified: bool) -> torch.Tensor:
     """count depths per ray between near and far (R,): bin midpoints, or one uniform draw per bin when stratified."""
     offsets = torch.rand(near.shape[0], count, device=near.device) if stratified else torch.full(
@@ -189,9 +211,10 @@ def ray_samples(near: torch.Tensor, far: torch.Tensor, count: int, stratified: b
 
 
 def render_feature_map(nerf: CNeRF, camera: Camera, size: tuple[int, int], geometry_code, appearance_code,
-                       stratified: bool = True):
-    """-> feature map (B, C, h, w) and opacity (B, 1, h, w). Only rays through the head's bounding sphere are
-    sampled (`nerf.cfg.samples` points between where they enter and leave it)."""
+                       stratified: bool = True, with_distortion: bool = False):
+    """-> feature map (B, C, h, w) and opacity (B, 1, h, w), and with `with_distortion` the mean `ray_distortion`
+    of the rays that were sampled (a scalar). Only rays through the head's bounding sphere are sampled
+    (`nerf.cfg.samples` points between where they enter and leave it)."""
     cfg = nerf.cfg
     origins, dirs = camera_rays(camera, size)
     near, far, hit = sphere_interval(origins, dirs, nerf.bound_center, nerf.bound_radius)
@@ -204,7 +227,12 @@ def render_feature_map(nerf: CNeRF, camera: Camera, size: tuple[int, int], geome
     b, h, w = dirs.shape[0], *size
     fmap = values.new_zeros(b, h * w, values.shape[-1]).index_put((b_idx, r_idx), values)
     alpha = opacity.new_zeros(b, h * w).index_put((b_idx, r_idx), opacity)
-    return fmap.transpose(1, 2).reshape(b, -1, h, w), alpha.reshape(b, 1, h, w)
+    out = fmap.transpose(1, 2).reshape(b, -1, h, w), alpha.reshape(b, 1, h, w)
+    if not with_distortion:
+        return out
+    sigma = sigma.reshape(-1, cfg.samples).float()
+    distortion = ray_distortion(sigma, depths, near[b_idx, r_idx], far[b_idx, r_idx])
+    return *out, distortion.mean() if len(distortion) else sigma.sum() * 0
 
 
 @torch.no_grad()

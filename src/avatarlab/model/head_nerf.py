@@ -45,11 +45,16 @@ class HeadNeRFModel(nn.Module):
         # background feature map; one learned vector here, the same at every pixel)
         self.background = nn.Parameter(torch.zeros(nerf_cfg.feature_channels))
 
-    def forward(self, geometry, appearance, camera: Camera, stratified: bool = True, with_opacity: bool = False):
-        fmap, opacity = render_feature_map(self.nerf, camera, (self.feature_size, self.feature_size), geometry,
-                                           appearance, stratified)
+    def forward(self, geometry, appearance, camera: Camera, stratified: bool = True, with_opacity: bool = False,
+                with_distortion: bool = False):
+        """-> image; (image, opacity) with `with_opacity`; (image, opacity, mean ray distortion) with
+        `with_distortion` (cnerf.ray_distortion)."""
+        fmap, opacity, *distortion = render_feature_map(self.nerf, camera, (self.feature_size, self.feature_size),
+                                                        geometry, appearance, stratified, with_distortion)
         fmap = fmap + (1 - opacity) * self.background[None, :, None, None].to(fmap.dtype)
         image = self.renderer(fmap)
+        if with_distortion:
+            return image, opacity, distortion[0]
         return (image, opacity) if with_opacity else image
 
     def spec(self) -> dict:

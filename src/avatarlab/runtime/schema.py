@@ -251,6 +251,7 @@ class Finetune:
     fixed_codes: list[str] = MISSING
     w_st_lpips: float = at_least(0)
     st_lpips_crop: int = at_least(0)
+    w_distortion: float = at_least(0)
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING
     z_aug_range: list[float] = MISSING

@@ -258,7 +258,8 @@ def log_to_run(cfg, run_id: str | None, model: dict, baselines: dict, gains: dic
 
 
 def log_history(run, entries: list[dict],
-                keys=("loss", "mse", "perceptual", "st_lpips_term", "psnr", "p_synthetic")) -> None:
+                keys=("loss", "mse", "perceptual", "offsets", "st_lpips_term", "distortion_term", "psnr",
+                      "p_synthetic")) -> None:
     """Per-iteration training numbers into the active run (each entry once: the loop hands over each segment)."""
     if run is None or not entries:
         return

@@ -50,6 +50,7 @@ class Recipe:
     w_mask: float = 0.0  # not in eq. (8): L1 between the feature map's opacity and the head mask (0: off)
     w_st_lpips: float = 0.0  # not in eq. (8): the ST-LPIPS distance between render and target (0: off)
     st_lpips_crop: int = 0  # that term on one window of this many pixels per sample (0: the whole image)
+    w_distortion: float = 0.0  # not in eq. (8): Mip-NeRF 360's distortion loss on the rays' weights (0: off)
     offset_weights: dict = field(default_factory=dict)
     checkpoint_every: int = 25
     log_every: int = 25
@@ -163,7 +164,8 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
     geometry, appearance = assemble_codes(batch.params, batch.lighting, off)
     optim.zero_grad(set_to_none=True)
     with autocast(device, recipe.amp):  # low precision for the networks; the loss sums in float32
-        pred, opacity = net(geometry, appearance, batch.camera, with_opacity=True)
+        pred, opacity, *distortion = net(geometry, appearance, batch.camera, with_opacity=True,
+                                         with_distortion=recipe.w_distortion > 0)
         pred = pred.float()
         target = composite(batch.images, batch.masks)
         terms = head_model_loss(pred, target, batch.masks, features, off, recipe.offset_weights,
@@ -172,6 +174,9 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
             coverage = F.adaptive_avg_pool2d(batch.masks, opacity.shape[-2:])
             terms["mask"] = recipe.w_mask * (opacity.float() - coverage).abs().mean()
             terms["total"] = terms["total"] + terms["mask"]
+        if recipe.w_distortion > 0:
+            terms["distortion"] = recipe.w_distortion * distortion[0]
+            terms["total"] = terms["total"] + terms["distortion"]
         if st_lpips is not None:
             terms["st_lpips"] = recipe.w_st_lpips * st_lpips.distance(pred, target, batch.masks)
             terms["total"] = terms["total"] + terms["st_lpips"]
@@ -181,9 +186,11 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
     with torch.no_grad():
         psnr = float(kornia.metrics.psnr(composite(pred, batch.masks), target, 1.0))
     return {"loss": float(terms["total"].detach()), "mse": float(terms["mse"].detach()),
-            "perceptual": float(terms["perceptual"].detach()), "psnr": psnr, "p_synthetic": batch.p_synthetic,
+            "perceptual": float(terms["perceptual"].detach()),
+            "offsets": float(terms["offsets"].detach()), "psnr": psnr, "p_synthetic": batch.p_synthetic,
             "n_synthetic": batch.n_synthetic,
-            **({"st_lpips_term": float(terms["st_lpips"].detach())} if st_lpips is not None else {})}
+            **({"st_lpips_term": float(terms["st_lpips"].detach())} if st_lpips is not None else {}),
+            **({"distortion_term": float(terms["distortion"].detach())} if "distortion" in terms else {})}
 
 
 def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, device: torch.device,
