@@ -142,3 +142,29 @@ def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
     for key in ("expression", "pose", "rot", "trans"):
         assert torch.equal(result[key][seen], noisy_result[key][seen]), key
     assert not torch.equal(result["expression"][~seen], noisy_result["expression"][~seen])
+
+
+def test_a_video_fit_holds_each_frames_expression_under_its_own_prior():
+    """fit_rgb.video_expression_reg: video mode fits every frame's 50 expression coefficients under that prior (a
+    frame fitted alone otherwise wanders in all of them); images mode keeps weights.expression_reg. A stronger prior
+    gives smaller codes on the same frames."""
+    from helpers import compose_config
+
+    from avatarlab.preprocess.fit_rgb import fit_video
+    from avatarlab.preprocess.synthetic_subject import render_subject
+
+    base = ["scale=smoke", "scale.subject_frames=8", "fit_rgb.lighting_per_clip=false",
+            "scale.fit_keyframe_iterations=10", "scale.fit_frame_iterations=10", "scale.fit_rigid_iterations=5",
+            "scale.fit_frame_rigid_iterations=5", "fit_rgb.held_out.test_frames=2",
+            "fit_rgb.held_out.validation_frames=1"]
+    truth = render_subject(compose_config(base))
+    found = np.ones(len(truth["video"]), bool)
+    size = {}
+    for mode, prior in (("video", 1e-4), ("video", 1.0), ("images", 1.0)):
+        cfg = compose_config(base + [f"fit_rgb.mode={mode}", f"fit_rgb.video_expression_reg={prior}"])
+        torch.manual_seed(0)
+        _, fitter, _, result, fitted, *_ = fit_video(cfg, truth["video"], truth["landmarks2d"], found, truth["masks"])
+        expected = prior if mode == "video" else float(cfg.fit_rgb.weights.expression_reg)
+        assert fitter.weights.expression_reg == pytest.approx(expected)
+        size[(mode, prior)] = float(result["expression"][fitted].norm(dim=1).mean())
+    assert size[("video", 1.0)] < 0.5 * size[("video", 1e-4)], size

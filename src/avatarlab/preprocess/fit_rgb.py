@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -225,6 +225,8 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
     model = load_head_model(cfg.head_model).to(device)
     size = frames.shape[1]
     weights = FitWeights(**fit.weights)
+    if fit.mode == "video":  # one identity over many frames: each frame's expression under its own prior
+        weights = replace(weights, expression_reg=float(fit.video_expression_reg))
     fitter = RGBFitter(model, size, weights, float(fit.lr), tuple(cfg.render.background),
                        tuple(np.radians(float(v)) for v in fit.jaw_limits_deg))
     focal0 = float(fit.initial_focal) * size

@@ -127,6 +127,7 @@ class FitRGB:
     lighting_frames: int = at_least(1)
     jaw_limits_deg: list[float] = MISSING
     weights: dict = MISSING
+    video_expression_reg: float = at_least(0)
     held_out: dict = MISSING   # test_frames, test_clips, validation_frames, validation_clips (the avatar's split)
 
 
