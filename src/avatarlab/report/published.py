@@ -52,8 +52,11 @@ SUBSTITUTIONS = [
     ("RGBD captures", "ZED2 depth", "the synthetic subjects' rendered depth with Gaussian noise",
      "no depth camera here"),
     ("RGB fit", "free intrinsics", "a fixed principal point (image centre); the root rotation folded into the camera; "
-     "the jaw's opening angle kept in fit_rgb.jaw_limits_deg ([-6, 40] degrees)", "stability on short clips; "
-     "pretraining uses neck/jaw/eyes, the camera carries the root; a fit once turned the jaw 48 degrees the closed way"),
+     "the jaw's opening angle kept in fit_rgb.jaw_limits_deg ([-6, 40] degrees); in video mode each frame's "
+     "expression under a prior of weight 1e-2 (fit_rgb.video_expression_reg; images mode 1e-4)",
+     "stability on short clips; pretraining uses neck/jaw/eyes, the camera carries the root; a fit once turned the "
+     "jaw 48 degrees the closed way; at 1e-4 a frame fitted alone wandered in all 50 expression coefficients, and a "
+     "clip the avatar never saw got codes unlike its training frames' (experiment log)"),
     ("RGBD fit", "blocks 1-3 as written", "fixed (known) intrinsics and a small L2 prior on shape/expression",
      "a depth camera's intrinsics are known; the prior keeps noisy frames plausible"),
     ("CNeRF rays", "a fixed [near, far]", "each ray sampled inside the head's bounding sphere in camera space; a learned "
