@@ -27,9 +27,18 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def chromium(*args: str, timeout=120) -> subprocess.CompletedProcess:
-    return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                           "--virtual-time-budget=25000", *args], capture_output=True, text=True, timeout=timeout)
+def chromium(*args: str, timeout=120, attempts=2) -> subprocess.CompletedProcess:
+    """Headless chromium on a page of the dashboard. Chromium itself now and then hangs on a page that loads in
+    seconds (seen in a fresh clone's full suite: once in three runs of this file, MLflow 3.18); such a hang is tried
+    once more, and the page's content is asserted by the caller either way."""
+    command = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+               "--virtual-time-budget=25000", *args]
+    for attempt in range(attempts):
+        try:
+            return subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            if attempt == attempts - 1:
+                raise
 
 
 @pytest.fixture(scope="module")
