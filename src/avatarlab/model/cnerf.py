@@ -164,6 +164,16 @@ def sphere_interval(origins: torch.Tensor, dirs: torch.Tensor, center: torch.Ten
     return near, far, (disc > 0) & (far > near)
 
 
+def compositing_weights(sigma: torch.Tensor, depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. (7)'s weights T_i (1 - exp(-sigma_i delta_i)) of samples at `depths` (..., N), and the deltas (the last
+    sample's delta is the interval before it)."""
+    steps = depths[..., 1:] - depths[..., :-1]
+    delta = torch.cat([steps, steps[..., -1:]], -1)
+    alpha = 1.0 - torch.exp(-sigma * delta)
+    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha + 1e-10], -1), -1)[..., :-1]
+    return alpha * transmittance, delta
+
+
 def volume_render_features(sigma: torch.Tensor, features: torch.Tensor, depths: torch.Tensor):
     """Eq. (7): FeatureMap(r) = sum_i T_i (1 - exp(-sigma_i delta_i)) v_i, T_i = exp(-sum_{j<i} sigma_j delta_j),
     over the ray's interval [t_1, t_N] (the last sample's delta is the interval before it, not NeRF's "to
@@ -172,11 +182,7 @@ def volume_render_features(sigma: torch.Tensor, features: torch.Tensor, depths: 
     sigma (..., N), features (..., N, C), depths (..., N) along the ray (camera z, since dirs have z = 1).
     Returns the feature values (..., C) and the accumulated opacity (...).
     """
-    steps = depths[..., 1:] - depths[..., :-1]
-    delta = torch.cat([steps, steps[..., -1:]], -1)
-    alpha = 1.0 - torch.exp(-sigma * delta)
-    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha + 1e-10], -1), -1)[..., :-1]
-    weights = alpha * transmittance
+    weights, _ = compositing_weights(sigma, depths)
     return (weights[..., None] * features).sum(-2), weights.sum(-1)
 
 
@@ -190,11 +196,7 @@ def ray_distortion(sigma: torch.Tensor, depths: torch.Tensor, near: torch.Tensor
     sigma, depths (R, N); near, far (R,) -> (R,)."""
     span = (far - near).clamp(min=1e-6)[:, None]
     s = (depths - near[:, None]) / span
-    steps = depths[..., 1:] - depths[..., :-1]
-    delta = torch.cat([steps, steps[..., -1:]], -1)
-    alpha = 1.0 - torch.exp(-sigma * delta)
-    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha + 1e-10], -1), -1)[..., :-1]
-    w = alpha * transmittance
+    w, delta = compositing_weights(sigma, depths)
     opacity = w.sum(-1)
     w = w / opacity.clamp(min=1e-6)[:, None]
     width = delta / span
