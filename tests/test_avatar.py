@@ -394,18 +394,22 @@ def test_the_st_lpips_and_distortion_terms_join_the_loss_only_when_weighted(tmp_
 
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
-    for weight, crop, distortion in ((0.0, 0, 0.0), (0.5, 32, 0.0), (0.0, 0, 0.5)):
-        out = tmp_path / f"avatar_{weight}_{distortion}"
+    for weight, crop, distortion, decay in ((0.0, 0, 0.0, 0.0), (0.5, 32, 0.0, 0.0), (0.0, 0, 0.5, 0.0),
+                                            (0.5, 32, 0.0, 1.0)):
+        out = tmp_path / f"avatar_{weight}_{distortion}_{decay}"
         cfg = step_cfg(finetune, tiny_model_overrides() + [
             f"finetune.subject_dir={subject}", "finetune.test_frames=2", f"finetune.out_dir={out}",
             f"finetune.init_model={path}", "finetune.iterations=3", "finetune.log_every=1",
-            f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}", f"finetune.w_distortion={distortion}"])
+            f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}", f"finetune.w_distortion={distortion}",
+            f"finetune.st_lpips_decay={decay}"])
         _, _, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
         history = report["history"]
         assert len(history) == 3
         assert all(("st_lpips_term" in h) == (weight > 0) for h in history)
         assert all(("distortion_term" in h) == (distortion > 0) for h in history)
-        for h in history:  # loss = eq. (8)'s mse + perceptual + offsets, + the extras
+        if decay:  # finetune.st_lpips_decay = 1: the term's weight falls to 0 at the last iteration
+            assert history[0]["st_lpips_term"] > 0 and history[-1]["st_lpips_term"] == 0.0
+        for h in history[:-1] if decay else history:  # loss = eq. (8)'s mse + perceptual + offsets, + the extras
             extras = h.get("st_lpips_term", 0.0) + h.get("distortion_term", 0.0)
             assert extras > 0 or weight == distortion == 0
             assert h["loss"] == pytest.approx(h["mse"] + h["perceptual"] + h["offsets"] + extras, rel=1e-5, abs=1e-7)

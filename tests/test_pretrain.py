@@ -348,6 +348,22 @@ def test_cosine_learning_rate_decay_falls_from_the_first_to_the_last_iteration()
         lr_factor(Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3, lr_decay="step"), 101)
 
 
+def test_the_st_lpips_weight_falls_linearly_to_its_last_iteration_only_when_asked():
+    from avatarlab.data.schedule import Schedule
+    from avatarlab.training.loop import Recipe, st_lpips_weight
+
+    schedule = Schedule(M=100, N=111, p_min=0.0, p_max=0.0, mouth_from=None)
+    flat = Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3, w_st_lpips=0.02)
+    assert [st_lpips_weight(flat, k) for k in (101, 106, 111)] == [0.02, 0.02, 0.02]
+    for decay, last in ((1.0, 0.0), (0.5, 0.01)):
+        falling = Recipe(schedule=schedule, start=100, batch=1, lr=1e-3, offset_lr=1e-3, w_st_lpips=0.02,
+                         st_lpips_decay=decay)
+        weights = [st_lpips_weight(falling, k) for k in range(101, 112)]
+        assert weights[0] == pytest.approx(0.02) and weights[-1] == pytest.approx(last, abs=1e-12)
+        assert weights[5] == pytest.approx((0.02 + last) / 2), "half-way: half-way between the first and the last"
+        assert all(a > b for a, b in zip(weights, weights[1:]))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("decay, ema", [("none", 0.0), ("cosine", 0.0), ("none", 0.5)])
 def test_pretraining_resumes_exactly_after_a_kill(tmp_path, monkeypatch, decay, ema):

@@ -252,6 +252,7 @@ class Finetune:
     fixed_codes: list[str] = MISSING
     w_st_lpips: float = at_least(0)
     st_lpips_crop: int = at_least(0)
+    st_lpips_decay: float = bounded(0, 1)
     w_distortion: float = at_least(0)
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING

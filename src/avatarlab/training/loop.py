@@ -50,6 +50,7 @@ class Recipe:
     w_mask: float = 0.0  # not in eq. (8): L1 between the feature map's opacity and the head mask (0: off)
     w_st_lpips: float = 0.0  # not in eq. (8): the ST-LPIPS distance between render and target (0: off)
     st_lpips_crop: int = 0  # that term on one window of this many pixels per sample (0: the whole image)
+    st_lpips_decay: float = 0.0  # that term's weight falls linearly to (1 - this) x w_st_lpips at the last iteration
     w_distortion: float = 0.0  # not in eq. (8): Mip-NeRF 360's distortion loss on the rays' weights (0: off)
     offset_weights: dict = field(default_factory=dict)
     checkpoint_every: int = 25
@@ -157,9 +158,18 @@ def batch_offsets(batch: Batch, offsets) -> dict[str, torch.Tensor]:
     return {k: offsets[k].index_select(0, rows) * real[:, None] for k in OFFSET_KEYS if k in offsets}
 
 
+def st_lpips_weight(recipe: Recipe, step: int) -> float:
+    """The ST-LPIPS term's weight at iteration `step` (1-based): `w_st_lpips` at the first iteration after `start`,
+    falling linearly to (1 - `st_lpips_decay`) x `w_st_lpips` at the last. A function of the iteration alone (resumes
+    take the same steps)."""
+    span = recipe.schedule.N - recipe.start
+    progress = min(max((step - 1 - recipe.start) / max(span - 1, 1), 0.0), 1.0)
+    return recipe.w_st_lpips * (1.0 - recipe.st_lpips_decay * progress)
+
+
 def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Recipe, device,
-               st_lpips: STLPIPSDistance | None = None) -> dict:
-    """One iteration of eq. (8): forward, loss, backward, Adam. -> the logged numbers."""
+               st_lpips: STLPIPSDistance | None = None, step: int = 0) -> dict:
+    """One iteration of eq. (8) (iteration `step`, 1-based): forward, loss, backward, Adam. -> the logged numbers."""
     off = batch_offsets(batch, offsets)
     geometry, appearance = assemble_codes(batch.params, batch.lighting, off)
     optim.zero_grad(set_to_none=True)
@@ -178,7 +188,7 @@ def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Reci
             terms["distortion"] = recipe.w_distortion * distortion[0]
             terms["total"] = terms["total"] + terms["distortion"]
         if st_lpips is not None:
-            terms["st_lpips"] = recipe.w_st_lpips * st_lpips.distance(pred, target, batch.masks)
+            terms["st_lpips"] = st_lpips_weight(recipe, step) * st_lpips.distance(pred, target, batch.masks)
             terms["total"] = terms["total"] + terms["st_lpips"]
     scaler.scale(terms["total"]).backward()
     scaler.step(optim)
@@ -236,7 +246,8 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
             factor = lr_factor(recipe, step + 1)
             for group, base in zip(optim.param_groups, base_lrs):
                 group["lr"] = base * factor
-            entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device, st_lpips)
+            entry = train_step(net, stream.next(), offsets, features, optim, scaler, recipe, device, st_lpips,
+                               step + 1)
             if not math.isfinite(entry["loss"]):
                 kept = (f"the last checkpoint, of iteration {saved_at}, is kept in {checkpoint.path}"
                         if saved_at is not None else "no checkpoint was written yet")
