@@ -318,6 +318,9 @@ def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, 
 def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model):
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
+    from avatarlab.data.real_images import RealImageSet
+    from avatarlab.model.head_nerf import load_model_file, render_frames
+    from avatarlab.model.losses import composite
 
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
@@ -338,6 +341,27 @@ def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_pat
     assert part["gain"]["psnr"]["gain"] == pytest.approx(part["model"]["psnr"] - part["gain"]["psnr"]["baseline"])
     assert [pt["step"] for pt in report["curve"]] == [7, 8, 9, 10] and report["step"] == 10  # 4 snapshots by default
     assert grid.shape[1] == 3 * 64, "rows: truth, model, best baseline"
+    # the fit of what it saw: evenly spaced training frames (6 here: 8 - 2 test frames), rendered as test frames are
+    trained = report["trained"]
+    assert trained["frames"] == 6 and trained["indices"] == list(range(6)) and not set(trained["indices"]) & {6, 7}
+    quick = common + [f"evaluate.model={tmp_path / 'avatar' / 'model.pt'}", "evaluate.st_lpips=false",
+                      "evaluate.face_metrics=false"]
+    few, _ = evaluation.evaluate_avatar(step_cfg(evaluation, quick + ["evaluate.trained_frames=3"]),
+                                        torch.device("cpu"))
+    assert few["trained"]["indices"] == [0, 2, 5]
+    net, _ = load_model_file(tmp_path / "avatar" / "model.pt")
+    frames = RealImageSet(subject, 64, np.array([0, 2, 5]))
+    target = composite(frames.images, frames.masks)
+    expected = psnr(composite(render_frames(net, frames), frames.masks), target)
+    assert few["trained"]["model"]["psnr"] == pytest.approx(expected, abs=1e-4)
+    assert few["trained"]["model"]["psnr"] != pytest.approx(few["all"]["model"]["psnr"], abs=1e-3)
+    none, _ = evaluation.evaluate_avatar(step_cfg(evaluation, quick + ["evaluate.trained_frames=0"]),
+                                         torch.device("cpu"))
+    assert none["trained"] is None
+    extras = evaluation.run_extras(few, "all")  # into the avatar's MLflow run
+    assert extras["trained_psnr"] == few["trained"]["model"]["psnr"] and "trained_ssim" in extras
+    assert set(evaluation.run_extras(none, "all")) == set(evaluation.run_extras(few, "mouth_open")) == {
+        "render_seconds_per_frame"}
 
 
 @pytest.mark.slow
@@ -378,6 +402,7 @@ def test_a_validation_split_chooses_the_stop_and_the_test_frames_stay_unseen(tmp
     assert [pt["step"] for pt in report["curve"]] == [start + 1, start + 2, start + 3, start + 4]
     assert [bool(pt.get("model")) for pt in report["curve"]] == [True, False, False, False]
     assert report["step"] == start + 1 and report["trained_to"] == start + 4 and report["validation_frames"] == 2
+    assert report["trained"]["indices"] == list(range(6)), "trained frames: never a validation or test frame"
     last = report["all"]["baselines"]["last_frame"]
     monkeypatch.setattr(evaluation, "avatar_split", lambda ft: type(finetune.avatar_split(ft))(
         train=finetune.avatar_split(ft).train, test=finetune.avatar_split(ft).test, protocol="last_frames"))

@@ -158,6 +158,29 @@ def test_the_sharpness_table_puts_every_seed_beside_the_nearest_training_frame()
     assert faces.sentence().startswith("obama is ahead of the nearest training frame in landmark error by 0.04")
 
 
+def test_the_fit_table_puts_the_trained_frames_beside_the_test_frames_for_every_seed():
+    """eval.json's `trained` (the avatar on its own training frames) beside its test scores: the gap trained - test
+    with its CI over seeds; a subject evaluated without trained frames has no row."""
+    from avatarlab.report.avatar_tables import fit_table
+
+    avatars = []
+    for seed, (trained, test) in enumerate([(28.0, 23.0), (29.0, 23.5), (28.5, 22.5)]):
+        a = avatar("obama", "final", "beta6_from_alpha2", "a", test)
+        a["seed"] = seed
+        a["eval"]["trained"] = {"frames": 24, "indices": list(range(24)),
+                                "model": {"psnr": trained, "ssim": 0.87, "st_lpips": 0.1}}
+        avatars.append(a)
+    unscored = avatar("talk", "final", "beta6_from_alpha2", "a", 30.0)  # evaluated with trained_frames = 0
+    unscored["eval"]["trained"] = None
+    table = fit_table(avatars + [unscored, avatar("s", "base", "alpha1", "a", 20.0)], "beta6_from_alpha2")
+    assert [r["subject"] for r in table.rows] == ["obama"]
+    row = table.rows[0]
+    assert row["seeds"] == 3 and row["trained_frames"] == 24
+    assert row["trained_psnr"] == pytest.approx(28.5) and row["psnr"] == pytest.approx(23.0)
+    assert row["gap_psnr"] == pytest.approx(5.5) and 0 < row["gap_psnr_ci95"] < 5.5
+    assert row["gap_ssim"] == pytest.approx(0.07) and row["trained_st_lpips"] == pytest.approx(0.1)
+
+
 def test_a_table_shows_eight_columns_rounded_to_its_noise_and_says_which_row_is_best():
     """What a reader sees: at most 8 columns (the others named, all in the CSV), a value with its CI rounded to the
     CI's first significant digit + 1, the best row marked, and one sentence on whether it beats its baseline beyond

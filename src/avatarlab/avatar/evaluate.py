@@ -6,7 +6,9 @@ pixelwise mean, the last of them, and the one nearest in fitted expression, jaw,
 into the test frame's true mask and scored the same way: PSNR, head-region PSNR (also with each frame's mean colour
 matched), SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all test frames whether the render is a
 face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
-normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings).
+normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings). Beside
+them, the avatar alone on some of its own training frames (`trained`): how well it fits what it saw, so that a gap
+to the test frames reads as generalisation, not fitting.
 Writes `eval.json` and `test_frames.png` (truth, model, best baseline) and logs into the avatar's MLflow run.
 `python -m avatarlab.avatar.evaluate evaluate.model=.../model.pt finetune.subject_dir=... evaluate.out=...`
 """
@@ -70,6 +72,20 @@ def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealI
     return sorted(points, key=lambda point: point["step"])
 
 
+def trained_frame_scores(net, ft, size: int, count: int, perceptual: dict) -> dict | None:
+    """The avatar's scores on `count` of its training frames (evenly spaced over `avatar_split(ft).train`; never a
+    validation or test frame), rendered from their fitted codes without the per-frame offsets it learned for them,
+    as every test frame is rendered. None when `count` is 0."""
+    train = avatar_split(ft).train
+    if count <= 0 or len(train) == 0:
+        return None
+    chosen = train[np.linspace(0, len(train) - 1, min(count, len(train))).round().astype(int)]
+    frames = RealImageSet(ft.subject_dir, size, chosen)
+    pred = composite(render_frames(net, frames), frames.masks)
+    scores = image_scores(pred, composite(frames.images, frames.masks), frames.masks, perceptual)
+    return {"frames": int(len(chosen)), "indices": chosen.tolist(), "model": scores}
+
+
 def scored(predictions: dict, target, masks, perceptual, sel) -> dict:
     model = image_scores(predictions["model"][sel], target[sel], masks[sel], perceptual)
     base = {k: image_scores(p[sel], target[sel], masks[sel], perceptual) for k, p in predictions.items()
@@ -111,6 +127,7 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
                                                                   identity=False)["face_detection_rate"]
     for part in ("all", "mouth_open"):
         report[part]["gain"] = gains(report[part]["model"], report[part]["baselines"])
+    report["trained"] = trained_frame_scores(net, ft, size, int(ev.trained_frames), perceptual)
     report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device,
                                     perceptual["st_lpips"])
     best = report["all"]["gain"]["psnr"]["best_baseline"]
@@ -124,6 +141,15 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
                    "run_id": content.get("run_id"),
                    "perceptual": {k: (m.name if m is not None else None) for k, m in perceptual.items()}})
     return report, grid
+
+
+def run_extras(report: dict, part: str) -> dict:
+    """What the avatar's MLflow run gets beside the `part`'s scores: the render time, and with the test frames
+    (`all`) the scores on its training frames as `trained_<metric>`."""
+    extras = {"render_seconds_per_frame": report["render_seconds_per_frame"]}
+    if part == "all" and report.get("trained"):
+        extras.update({f"trained_{k}": v for k, v in report["trained"]["model"].items()})
+    return extras
 
 
 @entry_point(READS)
@@ -143,12 +169,16 @@ def main(cfg, device) -> None:
     for part, prefix in (("all", "test_all"), ("mouth_open", "test_mouth_open")):
         log_to_run(cfg, report["run_id"], report[part]["model"], report[part]["baselines"], report[part]["gain"],
                    prefix, artifact=out.with_name("test_frames.png") if part == "all" else None,
-                   extra={"render_seconds_per_frame": report["render_seconds_per_frame"]})
+                   extra=run_extras(report, part))
     a, g = report["all"]["model"], report["all"]["gain"]["psnr"]
     log.info("avatar %s (%s): test PSNR %.2f dB vs best baseline %s %.2f dB (gain %+.2f), SSIM %.3f, ST-LPIPS %s, "
              "faces found %s, NME %s, identity %s", report["subject"], report["init"], a["psnr"], g["best_baseline"],
              g["baseline"], g["gain"], a["ssim"], a.get("st_lpips"), a.get("face_detection_rate"),
              a.get("landmark_nme"), a.get("identity_similarity"))
+    if report["trained"] is not None:
+        t = report["trained"]["model"]
+        log.info("the same avatar on %d of its training frames: PSNR %.2f dB, SSIM %.3f (test: %.2f dB, %.3f)",
+                 report["trained"]["frames"], t["psnr"], t["ssim"], a["psnr"], a["ssim"])
 
 
 if __name__ == "__main__":

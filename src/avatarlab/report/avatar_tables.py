@@ -152,6 +152,34 @@ def face_table(avatars: list[dict], final: str) -> Table:
     return table
 
 
+def fit_table(avatars: list[dict], final: str) -> Table:
+    """The final avatars on frames they trained on beside their test frames (eval.json's `trained`): a test score
+    far below the training frames' is a model that fits what it saw and does not carry it to new frames; a low
+    score on both, one that does not fit. gap = trained - test, with its 95 % CI over seeds."""
+    table = Table("final_avatar_fit", "Final-recipe avatars on frames they trained on, beside their test frames "
+                  "(mean over seeds, 95 % CI)",
+                  ["subject", "seeds", "trained_frames", "trained_psnr", "psnr", "gap_psnr", "gap_psnr_ci95",
+                   "trained_ssim", "ssim", "gap_ssim", "gap_ssim_ci95", "trained_st_lpips", "st_lpips"],
+                  "trained_*: the avatar rendered, as each test frame is, from the fitted codes of evenly spaced "
+                  "training frames (without the per-frame offsets it learned for them); the other columns: the test "
+                  "frames, as above. gap_*: trained minus test. A test target above the trained frames' score is "
+                  "out of the model's reach by generalisation alone.",
+                  shown=["subject", "trained_frames", "trained_psnr", "psnr", "gap_psnr", "trained_ssim", "ssim",
+                         "trained_st_lpips"])
+    for subject, runs, models, _ in final_seeds(avatars, final):
+        fits = [(a["eval"].get("trained") or {}).get("model") for a in runs]
+        if any(f is None for f in fits):
+            continue  # evaluated without trained frames (evaluate.trained_frames = 0) or before they were scored
+        row = {"subject": subject, "seeds": len(runs), "trained_frames": runs[0]["eval"]["trained"]["frames"]}
+        for key in ("psnr", "ssim", "st_lpips"):
+            row[f"trained_{key}"] = mean_ci(f.get(key) for f in fits)[0]
+            row[key] = mean_ci(m.get(key) for m in models)[0]
+        for key in ("psnr", "ssim"):
+            row[f"gap_{key}"], row[f"gap_{key}_ci95"], _ = mean_ci(f[key] - m[key] for f, m in zip(fits, models))
+        table.add(**row)
+    return table
+
+
 def alpha_table(avatars: list[dict]) -> Table:
     table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
                   "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,

@@ -277,6 +277,7 @@ class Evaluate:
     samples: int = at_least(1)
     baseline_pool: int = at_least(1)
     mouth_open_frames: int = at_least(1)
+    trained_frames: int = at_least(0)
     st_lpips: bool = MISSING
     lpips_backbone: Optional[str] = MISSING
     face_metrics: bool = MISSING
