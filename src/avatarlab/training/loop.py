@@ -76,9 +76,14 @@ def lr_factor(recipe: Recipe, step: int) -> float:
         return 1.0
     if recipe.lr_decay != "cosine":
         raise ValueError(f"lr_decay must be one of {LR_DECAYS}, got {recipe.lr_decay!r}")
+    return recipe.lr_final + (1.0 - recipe.lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress(recipe, step)))
+
+
+def progress(recipe: Recipe, step: int) -> float:
+    """How far iteration `step` (1-based) lies through the run: 0 at the first iteration after `start`, 1 at the
+    last (clamped outside)."""
     span = recipe.schedule.N - recipe.start
-    progress = (step - 1 - recipe.start) / max(span - 1, 1)
-    return recipe.lr_final + (1.0 - recipe.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
+    return min(max((step - 1 - recipe.start) / max(span - 1, 1), 0.0), 1.0)
 
 
 @dataclass
@@ -162,9 +167,7 @@ def st_lpips_weight(recipe: Recipe, step: int) -> float:
     """The ST-LPIPS term's weight at iteration `step` (1-based): `w_st_lpips` at the first iteration after `start`,
     falling linearly to (1 - `st_lpips_decay`) x `w_st_lpips` at the last. A function of the iteration alone (resumes
     take the same steps)."""
-    span = recipe.schedule.N - recipe.start
-    progress = min(max((step - 1 - recipe.start) / max(span - 1, 1), 0.0), 1.0)
-    return recipe.w_st_lpips * (1.0 - recipe.st_lpips_decay * progress)
+    return recipe.w_st_lpips * (1.0 - recipe.st_lpips_decay * progress(recipe, step))
 
 
 def train_step(net, batch: Batch, offsets, features, optim, scaler, recipe: Recipe, device,
