@@ -72,15 +72,14 @@ def quality_curve(model_path: Path, final: dict, final_scores: dict, test: RealI
     return sorted(points, key=lambda point: point["step"])
 
 
-def trained_frame_scores(net, ft, size: int, count: int, perceptual: dict) -> dict | None:
-    """The avatar's scores on `count` of its training frames (evenly spaced over `avatar_split(ft).train`; never a
-    validation or test frame), rendered from their fitted codes without the per-frame offsets it learned for them,
-    as every test frame is rendered. None when `count` is 0."""
-    train = avatar_split(ft).train
+def trained_frame_scores(net, subject_dir, train: np.ndarray, size: int, count: int, perceptual: dict) -> dict | None:
+    """The avatar's scores on `count` of its training frames (evenly spaced over `train`, the split's training
+    indices; never a validation or test frame), rendered from their fitted codes without the per-frame offsets it
+    learned for them, as every test frame is rendered. None when `count` is 0."""
     if count <= 0 or len(train) == 0:
         return None
     chosen = train[np.linspace(0, len(train) - 1, min(count, len(train))).round().astype(int)]
-    frames = RealImageSet(ft.subject_dir, size, chosen)
+    frames = RealImageSet(subject_dir, size, chosen)
     pred = composite(render_frames(net, frames), frames.masks)
     scores = image_scores(pred, composite(frames.images, frames.masks), frames.masks, perceptual)
     return {"frames": int(len(chosen)), "indices": chosen.tolist(), "model": scores}
@@ -127,7 +126,8 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
                                                                   identity=False)["face_detection_rate"]
     for part in ("all", "mouth_open"):
         report[part]["gain"] = gains(report[part]["model"], report[part]["baselines"])
-    report["trained"] = trained_frame_scores(net, ft, size, int(ev.trained_frames), perceptual)
+    report["trained"] = trained_frame_scores(net, ft.subject_dir, split.train, size, int(ev.trained_frames),
+                                             perceptual)
     report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device,
                                     perceptual["st_lpips"])
     best = report["all"]["gain"]["psnr"]["best_baseline"]
