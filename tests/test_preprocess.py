@@ -106,8 +106,36 @@ def test_a_frame_cap_keeps_every_clip(tmp_path):
         inputs.append(folder)
     frames, sources, _, _ = load_frames(inputs, None, 8)
     assert sources == ["clip0"] * 3 + ["clip1"] * 2 + ["clip2"] * 3
-    assert [int(f[0, 0, 0]) for f in frames] == [0, 10, 20, 100, 110, 200, 210, 220], "each clip's first frames"
+    assert [int(f[0, 0, 0]) for f in frames] == [0, 20, 50, 100, 110, 200, 220, 250], \
+        "each clip's share spread over the whole clip, its first and last frames included"
 
+
+
+def test_a_capped_video_is_thinned_over_its_whole_length(tmp_path):
+    """A video longer than its share of `max_frames` gives frames spread from its first to its last (a cut at the
+    cap kept only its first seconds: at 15 fps obama's clips were their first 2 s), at the target frame rate's
+    positions; a clip with no room left beside the others is left out with a warning, not an error."""
+    import cv2
+
+    from avatarlab.preprocess.frames import sampled_frames, spread
+
+    assert spread(10, None).tolist() == list(range(10)) and spread(3, 5).tolist() == [0, 1, 2]
+    assert spread(10, 4).tolist() == [0, 3, 6, 9] and spread(10, 0).tolist() == []
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 64))
+    for i in range(30):
+        writer.write(np.full((64, 64, 3), 8 * i, np.uint8))
+    writer.release()
+    assert sampled_frames(path, None) == 30 and sampled_frames(path, 5.0) == 6
+    level = lambda frames: [int(round(float(f.mean()) / 8)) for f in frames]  # the frame's index
+    frames, sources, fps, _ = load_frames([path], None, 4)
+    assert level(frames) == [0, 10, 19, 29] and sources == ["clip.avi"] * 4 and abs(fps - 25) < 0.5
+    frames, _, fps, _ = load_frames([path], 5.0, 3)  # every 5th frame: 0, 5, ..., 25; three of those six
+    assert level(frames) == [0, 10, 25] and abs(fps - 5) < 0.5
+    frames, _, _, _ = load_frames([path], 5.0, None)
+    assert level(frames) == [0, 5, 10, 15, 20, 25]
+    frames, sources, _, _ = load_frames([path, path, path], None, 2)
+    assert len(frames) == 2 and sources == ["clip.avi", str(path)], "the third copy has no room: left out"
 
 def test_real_clips_filmed_at_other_distances_come_out_centred_and_the_same_size():
     """Two obama clips: the head sits 0.85 m from the camera in one, 1.13 m in the other. With one crop per clip

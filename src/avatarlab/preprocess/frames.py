@@ -74,34 +74,67 @@ def check_video_stream(path: Path) -> None:
                          "line(s)); use a complete copy of the file")
 
 
-def read_video(path: Path, target_fps: float | None, max_frames: int | None, max_missing: float = 0.1):
-    """The frames of a video (every `fps / target_fps`-th), at most `max_frames`. A file that decodes fewer frames
-    than its header declares, by more than the share `max_missing` (a truncated download, a broken encode), stops
-    with the file and the counts named, rather than becoming a shorter subject unnoticed."""
+def sampling_step(fps: float, target_fps: float | None) -> int:
+    """Every how many frames one is taken to come near `target_fps` (None: every frame)."""
+    return max(1, int(round(fps / target_fps))) if target_fps else 1
+
+
+def spread(count: int, keep: int | None) -> np.ndarray:
+    """Positions of `keep` of `count` frames spread evenly over them, the first and the last included (all of them
+    when `keep` is None or not below `count`): a capped clip is thinned over its whole length, not cut short."""
+    if keep is None or keep >= count:
+        return np.arange(count)
+    if keep <= 0:
+        return np.arange(0)
+    return np.unique(np.linspace(0, count - 1, keep).round().astype(int))
+
+
+def sampled_frames(path: Path, target_fps: float | None) -> int:
+    """How many frames `read_video` takes from a video at `target_fps` before any cap: from the header's frame
+    count, or, where the header declares none, by counting the frames once without decoding them to images."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
+    step = sampling_step(cap.get(cv2.CAP_PROP_FPS) or 25.0, target_fps)
+    declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    if declared <= 0:
+        while cap.grab():
+            declared += 1
+    cap.release()
+    return -(-declared // step)
+
+
+def read_video(path: Path, target_fps: float | None, keep: int | None, max_missing: float = 0.1):
+    """The frames of a video (every `fps / target_fps`-th), at most `keep` of them, spread evenly over the whole
+    video (`spread`). A file that decodes fewer frames than its header declares, by more than the share
+    `max_missing` (a truncated download, a broken encode), stops with the file and the counts named, rather than
+    becoming a shorter subject unnoticed."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
     check_video_stream(path)
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
     declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-    step = max(1, int(round(fps / target_fps))) if target_fps else 1
+    step = sampling_step(fps, target_fps)
+    wanted = None
+    if keep is not None:
+        count = -(-declared // step) if declared > 0 else sampled_frames(path, target_fps)
+        wanted = set(spread(count, keep).tolist())
     frames, index = [], 0
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        if index % step == 0:
+    while cap.grab():
+        position, sampled = divmod(index, step)
+        if sampled == 0 and (wanted is None or position in wanted):
+            ok, frame = cap.retrieve()
+            if not ok:
+                break
             if not frames:
                 check_size(path, frame, "video")
             frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
-            if max_frames and len(frames) >= max_frames:
-                break
         index += 1
     cap.release()
     if not frames:
         raise InputError(f"{path}: no frames could be decoded")
-    capped = max_frames and len(frames) >= max_frames
-    if not capped and declared > 0 and index < declared * (1 - max_missing):
+    if declared > 0 and index < declared * (1 - max_missing):
         raise InputError(f"{path}: only {index} of the {declared} frames its header declares could be decoded "
                          f"(truncated or damaged file; preprocess.max_missing_frames={max_missing})")
     return frames, fps / step
@@ -154,30 +187,45 @@ def share_frames(counts: list[int], cap: int | None) -> list[int]:
 
 
 def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float = 0.1):
-    """-> frames (list of RGB uint8), source label per frame, fps, kind. At most `max_frames` in all, the first
-    frames of every input (`share_frames`)."""
-    clips, labels, fps, kinds = [], [], None, set()
+    """-> frames (list of RGB uint8), source label per frame, fps, kind. At most `max_frames` in all, shared over
+    the inputs (`share_frames`), each input's share spread over its whole length (`spread`)."""
+    kinds, counts, files_of = [], [], []
     for path in inputs:
         kind = input_kind(path)
-        kinds.add(kind)
+        files = None
         if kind == "video":
-            clip, clip_fps = read_video(path, target_fps, max_frames, max_missing)
-            fps = fps or clip_fps
+            count = sampled_frames(path, target_fps)
         else:
             folder = path / "images" if kind == "insta" else path
             files = [path] if kind == "image" else sorted(f for f in folder.iterdir()
                                                            if f.suffix.lower() in IMAGE_SUFFIXES)
             if not files:
                 raise InputError(f"{folder}: no images found")
-            clip = read_images(files[:max_frames] if max_frames else files)
+            count = len(files)
+        kinds.append(kind)
+        counts.append(count)
+        files_of.append(files)
+    shares = share_frames(counts, max_frames)
+    frames, sources, labels, fps = [], [], [], None
+    for path, kind, files, count, keep in zip(inputs, kinds, files_of, counts, shares):
+        if keep == 0:
+            log.warning("%s: none of its frames fit in preprocess.max_frames=%s beside the other inputs", path,
+                        max_frames)
+            continue
+        if kind == "video":
+            clip, clip_fps = read_video(path, target_fps, keep if keep < count else None, max_missing)
+            fps = fps or clip_fps
+        else:
+            clip = read_images([files[i] for i in spread(count, keep)])
             fps = fps or 25.0
-        clips.append(clip)
-        labels.append(source_label(path, labels))
-    frames, sources = [], []
-    for clip, label, keep in zip(clips, labels, share_frames([len(c) for c in clips], max_frames)):
-        frames += clip[:keep]
-        sources += [label] * keep
-    return frames, sources, float(fps or 25.0), sorted(kinds)
+        if keep < count:
+            log.info("%s: %d of its %d frames, spread over it (preprocess.max_frames=%s)", path, len(clip), count,
+                     max_frames)
+        label = source_label(path, labels)
+        labels.append(label)
+        frames += clip
+        sources += [label] * len(clip)
+    return frames, sources, float(fps or 25.0), sorted(set(kinds))
 
 
 def stable_head_crop(frames, margin: float, samples: int, upsample: int, label: str = "all") -> tuple[int, int, int]:
