@@ -166,7 +166,13 @@ def test_st_lpips_ranks_real_photographs_and_tolerates_a_pixel_shift():
     assert same == pytest.approx(0.0, abs=1e-6) and 0 < mild < unrelated
     assert psnr(shift, img) < psnr(blur, img) - 3, "the shift is the larger change by PSNR"
     assert shifted < mild, "and the smaller one to a shift-tolerant perceptual metric"
-    assert "ST-LPIPS" in metric.name and "LPIPS (VGG" not in metric.name
+    assert "ST-LPIPS" in metric.name and "LPIPS (VGG" not in metric.name and "AlexNet" in metric.name
+    vgg = STLPIPS(net="vgg")  # the VGG16 variant (a training term's network), its weights from the same wheel
+    same, mild, unrelated = (vgg(x, img) for x in (img, blur, other))
+    assert same == pytest.approx(0.0, abs=1e-6) and 0 < mild < unrelated and "VGG16" in vgg.name
+    assert abs(mild - metric(blur, img)) > 1e-3, "a network of its own, not AlexNet again"
+    with pytest.raises(ValueError, match="must be one of"):
+        STLPIPS(net="resnet")
 
 
 def test_face_metrics_on_renders_of_the_head_model(head_model):
@@ -419,16 +425,20 @@ def test_the_st_lpips_and_distortion_terms_join_the_loss_only_when_weighted(tmp_
 
     path, _ = parent_model
     subject = fake_video_subject(tmp_path / "subject", count=8)
-    for weight, crop, distortion, decay in ((0.0, 0, 0.0, 0.0), (0.5, 32, 0.0, 0.0), (0.0, 0, 0.5, 0.0),
-                                            (0.5, 32, 0.0, 1.0)):
-        out = tmp_path / f"avatar_{weight}_{distortion}_{decay}"
+    first_term = {}
+    for weight, crop, distortion, decay, net in ((0.0, 0, 0.0, 0.0, "alex"), (0.5, 32, 0.0, 0.0, "alex"),
+                                                 (0.0, 0, 0.5, 0.0, "alex"), (0.5, 32, 0.0, 1.0, "alex"),
+                                                 (0.5, 32, 0.0, 0.0, "vgg")):
+        out = tmp_path / f"avatar_{weight}_{distortion}_{decay}_{net}"
         cfg = step_cfg(finetune, tiny_model_overrides() + [
             f"finetune.subject_dir={subject}", "finetune.test_frames=2", f"finetune.out_dir={out}",
             f"finetune.init_model={path}", "finetune.iterations=3", "finetune.log_every=1",
             f"finetune.w_st_lpips={weight}", f"finetune.st_lpips_crop={crop}", f"finetune.w_distortion={distortion}",
-            f"finetune.st_lpips_decay={decay}"])
+            f"finetune.st_lpips_decay={decay}", f"finetune.st_lpips_net={net}"])
         _, _, report = finetune.finetune_avatar(cfg, torch.device("cpu"))
         history = report["history"]
+        if weight and not decay:  # the same first batch and render: only the term's network differs
+            first_term[net] = history[0]["st_lpips_term"]
         assert len(history) == 3
         assert all(("st_lpips_term" in h) == (weight > 0) for h in history)
         assert all(("distortion_term" in h) == (distortion > 0) for h in history)
@@ -438,6 +448,8 @@ def test_the_st_lpips_and_distortion_terms_join_the_loss_only_when_weighted(tmp_
             extras = h.get("st_lpips_term", 0.0) + h.get("distortion_term", 0.0)
             assert extras > 0 or weight == distortion == 0 or (decay and h is history[-1])
             assert h["loss"] == pytest.approx(h["mse"] + h["perceptual"] + h["offsets"] + extras, rel=1e-5, abs=1e-7)
+    assert first_term["vgg"] > 0 and abs(first_term["vgg"] - first_term["alex"]) > 1e-4 * first_term["alex"], \
+        "finetune.st_lpips_net=vgg trains with the VGG16 network"
 
 
 @pytest.mark.slow

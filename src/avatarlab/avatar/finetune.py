@@ -51,7 +51,7 @@ def recipe_of(cfg, start: int) -> Recipe:
                   z_aug=bool(ft.z_aug), z_aug_range=tuple(ft.z_aug_range), fixed_codes=tuple(ft.fixed_codes),
                   freeze_layers=int(ft.freeze_layers), w_mse=float(m.w_mse), w_perceptual=float(m.w_perceptual),
                   w_mask=float(m.w_mask), w_st_lpips=float(ft.w_st_lpips), st_lpips_crop=int(ft.st_lpips_crop),
-                  st_lpips_decay=float(ft.st_lpips_decay),
+                  st_lpips_decay=float(ft.st_lpips_decay), st_lpips_net=str(ft.st_lpips_net),
                   w_distortion=float(ft.w_distortion),
                   offset_weights=dict(m.offset_weights), checkpoint_every=int(ft.checkpoint_every),
                   log_every=int(ft.log_every), amp=bool(cfg.amp), mlp_precision=str(m.mlp_precision),

@@ -67,18 +67,25 @@ def psnr_colour_matched(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
     return psnr_in_mask(colour_matched(pred, target, mask), target, mask)
 
 
+ST_LPIPS_NETS = {"alex": "AlexNet", "vgg": "VGG16"}
+
+
 class STLPIPS:
-    """Shift-tolerant LPIPS, AlexNet variant, with the weights of the stlpips-pytorch wheel (read with
-    weights_only=True and checked to cover every layer). Lower is more similar; inputs in [0, 1]."""
+    """Shift-tolerant LPIPS with the weights of the stlpips-pytorch wheel (read with weights_only=True and checked to
+    cover every layer). Lower is more similar; inputs in [0, 1]. `net`: alex (the metric every table reports) or
+    vgg (its VGG16 variant, whose backbone and calibration the wheel also ships; a training term only)."""
 
     name = "ST-LPIPS (AlexNet, shift-tolerant; Ghildyal & Liu 2022)"
 
-    def __init__(self, device: torch.device = CPU):
+    def __init__(self, device: torch.device = CPU, net: str = "alex"):
         from stlpips_pytorch import stlpips
 
+        if net not in ST_LPIPS_NETS:
+            raise ValueError(f"ST-LPIPS network must be one of {sorted(ST_LPIPS_NETS)}, got {net!r}")
         root = Path(list(importlib.util.find_spec("stlpips_pytorch").submodule_search_locations)[0])
-        weights = root / "weights" / "vST0.0" / "alex_shift_tolerant.pth"
-        self.model = stlpips.LPIPS(net="alex", variant="shift_tolerant", pretrained=False, verbose=False)
+        weights = root / "weights" / "vST0.0" / f"{net}_shift_tolerant.pth"
+        self.name = f"ST-LPIPS ({ST_LPIPS_NETS[net]}, shift-tolerant; Ghildyal & Liu 2022)"
+        self.model = stlpips.LPIPS(net=net, variant="shift_tolerant", pretrained=False, verbose=False)
         result = self.model.load_state_dict(load_tensors(weights, "ST-LPIPS weights"), strict=False)
         # `lins.k` are the same modules as `link` (two names in the state dict, one in the file)
         missing = [k for k in result.missing_keys if not k.startswith("lins.")]
@@ -99,17 +106,19 @@ class STLPIPS:
 
 
 class STLPIPSDistance(torch.nn.Module):
-    """The perceptual term as the ST-LPIPS distance (AlexNet, shift-tolerant; the weights of the stlpips-pytorch
-    wheel, frozen): the batch's mean distance between the render and the target, inputs in [0, 1]. `crop` > 0: on
-    one `crop`-pixel window per sample, centred on a random head pixel (LPIPS was trained on 64-pixel patches; a
-    64-pixel window of a 128-pixel image costs about a quarter)."""
+    """The perceptual term as the ST-LPIPS distance (shift-tolerant; `net` alex or vgg, the weights of the
+    stlpips-pytorch wheel, frozen): the batch's mean distance between the render and the target, inputs in [0, 1].
+    `crop` > 0: on one `crop`-pixel window per sample, centred on a random head pixel (LPIPS was trained on 64-pixel
+    patches; a 64-pixel window of a 128-pixel image costs about a quarter)."""
 
-    def __init__(self, crop: int = 0):
+    def __init__(self, crop: int = 0, net: str = "alex"):
         super().__init__()
-        with torch.random.fork_rng(devices=[]):  # building AlexNet draws random weights: leave the run's stream alone
-            self.model = STLPIPS().model
+        with torch.random.fork_rng(devices=[]):  # building the network draws random weights: leave the run's stream
+            self.model = STLPIPS(net=net).model
         self.crop = int(crop)
-        self.name = "ST-LPIPS AlexNet (stlpips-pytorch wheel)" + (f", {self.crop}-pixel head windows" if crop else "")
+        self.net = net
+        self.name = (f"ST-LPIPS {ST_LPIPS_NETS[net]} (stlpips-pytorch wheel)"
+                     + (f", {self.crop}-pixel head windows" if crop else ""))
 
     def distance(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         if 0 < self.crop < min(pred.shape[-2:]):

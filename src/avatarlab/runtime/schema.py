@@ -253,6 +253,7 @@ class Finetune:
     w_st_lpips: float = at_least(0)
     st_lpips_crop: int = at_least(0)
     st_lpips_decay: float = bounded(0, 1)
+    st_lpips_net: str = one_of("alex", "vgg")
     w_distortion: float = at_least(0)
     freeze_layers: int = at_least(0)
     z_aug: bool = MISSING

@@ -51,6 +51,7 @@ class Recipe:
     w_st_lpips: float = 0.0  # not in eq. (8): the ST-LPIPS distance between render and target (0: off)
     st_lpips_crop: int = 0  # that term on one window of this many pixels per sample (0: the whole image)
     st_lpips_decay: float = 0.0  # that term's weight falls linearly to (1 - this) x w_st_lpips at the last iteration
+    st_lpips_net: str = "alex"  # that term's network: alex (the reported metric's own) | vgg (its VGG16 variant)
     w_distortion: float = 0.0  # not in eq. (8): Mip-NeRF 360's distortion loss on the rays' weights (0: off)
     offset_weights: dict = field(default_factory=dict)
     checkpoint_every: int = 25
@@ -240,9 +241,12 @@ def train(net: HeadNeRFModel, source: BatchSource, recipe: Recipe, features, dev
     stream = BatchStream(source, step, recipe.schedule.N, g)
     net.train()
     net.nerf.compute_dtype = MLP_PRECISIONS[recipe.mlp_precision]
-    st_lpips = STLPIPSDistance(recipe.st_lpips_crop).to(device) if recipe.w_st_lpips > 0 else None
+    st_lpips = (STLPIPSDistance(recipe.st_lpips_crop, recipe.st_lpips_net).to(device) if recipe.w_st_lpips > 0
+                else None)
     if st_lpips is not None:
-        log.info("loss: + %g x %s (not in eq. 8; also an evaluation metric)", recipe.w_st_lpips, st_lpips.name)
+        log.info("loss: + %g x %s (not in eq. 8; %s)", recipe.w_st_lpips, st_lpips.name,
+                 "the reported ST-LPIPS is this network's" if st_lpips.net == "alex" else
+                 "the reported ST-LPIPS is AlexNet's, not this network's")
     try:
         t0 = time.perf_counter()
         while step < recipe.schedule.N:
