@@ -254,6 +254,9 @@ def test_ray_distortion_is_low_for_a_surface_and_not_lowered_by_transparency():
     sigma = spread.clone().requires_grad_(True)
     ray_distortion(sigma, depths, near, far).sum().backward()
     assert sigma.grad is not None and float(sigma.grad.abs().sum()) > 0
+    from avatarlab.model.cnerf import compositing_weights  # weights computed once by the caller: the same term
+    again = ray_distortion(spread, depths, near, far, compositing_weights(spread, depths))
+    assert torch.equal(again, thick)
 
 
 def test_eq8_offsets_only_for_real_samples(tmp_path):

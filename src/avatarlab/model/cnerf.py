@@ -174,29 +174,32 @@ def compositing_weights(sigma: torch.Tensor, depths: torch.Tensor) -> tuple[torc
     return alpha * transmittance, delta
 
 
-def volume_render_features(sigma: torch.Tensor, features: torch.Tensor, depths: torch.Tensor):
+def volume_render_features(sigma: torch.Tensor, features: torch.Tensor, depths: torch.Tensor,
+                           composited: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Eq. (7): FeatureMap(r) = sum_i T_i (1 - exp(-sigma_i delta_i)) v_i, T_i = exp(-sum_{j<i} sigma_j delta_j),
     over the ray's interval [t_1, t_N] (the last sample's delta is the interval before it, not NeRF's "to
     infinity": a ray may stay transparent, and the background shows through - HeadNeRFModel).
 
-    sigma (..., N), features (..., N, C), depths (..., N) along the ray (camera z, since dirs have z = 1).
+    sigma (..., N), features (..., N, C), depths (..., N) along the ray (camera z, since dirs have z = 1);
+    `composited`: `compositing_weights(sigma, depths)` when the caller has them already.
     Returns the feature values (..., C) and the accumulated opacity (...).
     """
-    weights, _ = compositing_weights(sigma, depths)
+    weights, _ = composited if composited is not None else compositing_weights(sigma, depths)
     return (weights[..., None] * features).sum(-2), weights.sum(-1)
 
 
-def ray_distortion(sigma: torch.Tensor, depths: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+def ray_distortion(sigma: torch.Tensor, depths: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                   composited: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Mip-NeRF 360's distortion loss (Barron et al. 2022, eq. 15) per ray, on the ray's interval normalised to
     [0, 1] and on the ray's weights normalised to sum 1: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (s_i+1 - s_i),
     w the compositing weights of eq. (7) over their sum, m the bins' midpoints; times the ray's opacity, held fixed.
     Small when a ray's weight sits in one thin layer (a surface); large when it is spread along the ray, which renders
     a feature at several depths - copies of it under a new view. Normalised, so that making a ray transparent does
     not lower it (the 2D renderer could still read a transparent ray's features).
-    sigma, depths (R, N); near, far (R,) -> (R,)."""
+    sigma, depths (R, N); near, far (R,) -> (R,); `composited` as in `volume_render_features`."""
     span = (far - near).clamp(min=1e-6)[:, None]
     s = (depths - near[:, None]) / span
-    w, delta = compositing_weights(sigma, depths)
+    w, delta = composited if composited is not None else compositing_weights(sigma, depths)
     opacity = w.sum(-1)
     w = w / opacity.clamp(min=1e-6)[:, None]
     width = delta / span
@@ -224,16 +227,16 @@ def render_feature_map(nerf: CNeRF, camera: Camera, size: tuple[int, int], geome
     depths = ray_samples(near[b_idx, r_idx], far[b_idx, r_idx], cfg.samples, stratified)  # (R', N)
     points = origins[b_idx, r_idx][:, None] + dirs[b_idx, r_idx][:, None] * depths[..., None]
     sigma, feat = nerf(points.reshape(-1, 3), b_idx.repeat_interleave(cfg.samples), geometry_code, appearance_code)
-    values, opacity = volume_render_features(sigma.reshape(-1, cfg.samples).float(),
-                                             feat.reshape(-1, cfg.samples, feat.shape[-1]), depths)
+    sigma = sigma.reshape(-1, cfg.samples).float()
+    composited = compositing_weights(sigma, depths)  # eq. (7)'s weights, once for the features and the distortion
+    values, opacity = volume_render_features(sigma, feat.reshape(-1, cfg.samples, feat.shape[-1]), depths, composited)
     b, h, w = dirs.shape[0], *size
     fmap = values.new_zeros(b, h * w, values.shape[-1]).index_put((b_idx, r_idx), values)
     alpha = opacity.new_zeros(b, h * w).index_put((b_idx, r_idx), opacity)
     out = fmap.transpose(1, 2).reshape(b, -1, h, w), alpha.reshape(b, 1, h, w)
     if not with_distortion:
         return out
-    sigma = sigma.reshape(-1, cfg.samples).float()
-    distortion = ray_distortion(sigma, depths, near[b_idx, r_idx], far[b_idx, r_idx])
+    distortion = ray_distortion(sigma, depths, near[b_idx, r_idx], far[b_idx, r_idx], composited)
     return *out, distortion.mean() if len(distortion) else sigma.sum() * 0
 
 
