@@ -206,6 +206,7 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
         counts.append(count)
         files_of.append(files)
     shares = share_frames(counts, max_frames)
+    capped = bool(max_frames) and sum(counts) > max_frames
     frames, sources, labels, fps = [], [], [], None
     for path, kind, files, count, keep in zip(inputs, kinds, files_of, counts, shares):
         if keep == 0:
@@ -214,6 +215,8 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
             continue
         if kind == "video":
             clip, clip_fps = read_video(path, target_fps, keep if keep < count else None, max_missing)
+            if capped:  # a header that declares fewer frames than the file holds does not lift the cap
+                clip = clip[:keep]
             fps = fps or clip_fps
         else:
             clip = read_images([files[i] for i in spread(count, keep)])
