@@ -104,9 +104,10 @@ def sampled_frames(path: Path, target_fps: float | None) -> int:
     return -(-declared // step)
 
 
-def read_video(path: Path, target_fps: float | None, keep: int | None, max_missing: float = 0.1):
+def read_video(path: Path, target_fps: float | None, keep: int | None, max_missing: float = 0.1,
+               count: int | None = None):
     """The frames of a video (every `fps / target_fps`-th), at most `keep` of them, spread evenly over the whole
-    video (`spread`). A file that decodes fewer frames than its header declares, by more than the share
+    video (`spread`; `count`: `sampled_frames` of it when the caller has it already). A file that decodes fewer frames than its header declares, by more than the share
     `max_missing` (a truncated download, a broken encode), stops with the file and the counts named, rather than
     becoming a shorter subject unnoticed."""
     cap = cv2.VideoCapture(str(path))
@@ -118,8 +119,7 @@ def read_video(path: Path, target_fps: float | None, keep: int | None, max_missi
     step = sampling_step(fps, target_fps)
     wanted = None
     if keep is not None:
-        count = -(-declared // step) if declared > 0 else sampled_frames(path, target_fps)
-        wanted = set(spread(count, keep).tolist())
+        wanted = set(spread(sampled_frames(path, target_fps) if count is None else count, keep).tolist())
     frames, index = [], 0
     while cap.grab():
         position, sampled = divmod(index, step)
@@ -214,7 +214,7 @@ def load_frames(inputs: list[Path], target_fps, max_frames, max_missing: float =
                         max_frames)
             continue
         if kind == "video":
-            clip, clip_fps = read_video(path, target_fps, keep if keep < count else None, max_missing)
+            clip, clip_fps = read_video(path, target_fps, keep if keep < count else None, max_missing, count)
             if capped:  # a header that declares fewer frames than the file holds does not lift the cap
                 clip = clip[:keep]
             fps = fps or clip_fps
