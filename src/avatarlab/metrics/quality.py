@@ -75,8 +75,6 @@ class STLPIPS:
     cover every layer). Lower is more similar; inputs in [0, 1]. `net`: alex (the metric every table reports) or
     vgg (its VGG16 variant, whose backbone and calibration the wheel also ships; a training term only)."""
 
-    name = "ST-LPIPS (AlexNet, shift-tolerant; Ghildyal & Liu 2022)"
-
     def __init__(self, device: torch.device = CPU, net: str = "alex"):
         from stlpips_pytorch import stlpips
 
