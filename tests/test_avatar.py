@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import math
 
@@ -47,6 +48,34 @@ def test_split_can_hold_out_whole_clips():
     assert split.protocol == "held_out_clips"
     with pytest.raises(InputError, match="1 clip"):
         subject_split(np.ones(4, bool), np.zeros(4, int), 1, test_clips=1, source="frames.json")
+
+
+def test_the_last_frames_of_each_training_clip_are_a_test_set_of_their_own():
+    """finetune.recording_test_frames: with held-out clips, the last frames of every training clip are held out of
+    training and scored apart (a later moment of a recording it trained on); each clip keeps its first frame; the
+    preprocessing's wall (held_out) counts them as test frames; the last-frames protocol ignores the setting."""
+    from avatarlab.data.splits import held_out
+
+    clips = np.repeat([0, 1, 2, 3], [5, 1, 3, 3])  # clip 2 validation, clip 3 test
+    fitted = np.ones(12, bool)
+    fitted[4] = False
+    split = subject_split(fitted, clips, 3, test_clips=1, validation_clips=1, recording_test_frames=2)
+    assert list(split.recording) == [3] and list(split.test) == [9, 10, 11] and list(split.validation) == [6, 7, 8]
+    assert list(split.train) == [0, 1, 2, 5], "clip 1's only frame stays a training frame"
+    assert list(split.seen) == [0, 1, 2, 5, 6, 7, 8], "the baselines never copy a same-recording test frame"
+    in_test, in_validation, protocol = held_out(clips, 3, 1, 0, 1, recording_test_frames=2)
+    assert list(np.nonzero(in_test)[0]) == [3, 4, 9, 10, 11] and protocol == "held_out_clips"
+    plain = subject_split(np.ones(12, bool), clips, 3, test_clips=1, validation_clips=1)
+    assert len(plain.recording) == 0 and list(plain.train) == [0, 1, 2, 3, 4, 5]
+    last = subject_split(np.ones(20, bool), np.repeat([0, 1], 10), 5, recording_test_frames=2)
+    assert len(last.recording) == 0 and list(last.train) == list(range(15))
+    assert list(np.nonzero(held_out(np.repeat([0, 1], 10), 5, recording_test_frames=2)[0])[0]) == list(range(15, 20))
+    # the last-frame baseline of a same-recording frame is its clip's last training frame, of a test clip's frame
+    # the last frame seen (a validation frame here), of a frame before everything seen the last frame seen
+    from avatarlab.avatar.evaluate import last_seen_before
+
+    seen = split.seen[::-1].copy()  # any order
+    assert list(seen[last_seen_before(seen, np.array([3, 9, 11, 0]))]) == [2, 8, 8, 8]
 
 
 def test_validation_frames_and_clips_are_held_out_of_training_and_testing():
@@ -321,7 +350,7 @@ def test_finetuning_freezes_the_first_layers_and_keeps_identity_fixed(tmp_path, 
 
 
 @pytest.mark.slow
-def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model):
+def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_path, parent_model, monkeypatch):
     from avatarlab.avatar import evaluate as evaluation
     from avatarlab.avatar import finetune
     from avatarlab.data.real_images import RealImageSet
@@ -368,6 +397,21 @@ def test_avatar_evaluation_scores_model_and_baselines_on_the_same_frames(tmp_pat
     assert extras["trained_psnr"] == few["trained"]["model"]["psnr"] and "trained_ssim" in extras
     assert set(evaluation.run_extras(none, "all")) == set(evaluation.run_extras(few, "mouth_open")) == {
         "render_seconds_per_frame"}
+    # same-recording test frames (finetune.recording_test_frames with held-out clips): here frame 5, scored apart
+    assert report["same_recording"] is None, "the last-frames protocol has none"
+    split = evaluation.avatar_split(cfg.finetune)
+    monkeypatch.setattr(evaluation, "avatar_split", lambda ft: dataclasses.replace(
+        split, train=split.train[:5], recording=np.array([5])))
+    later, _ = evaluation.evaluate_avatar(step_cfg(evaluation, quick), torch.device("cpu"))
+    same = later["same_recording"]
+    assert same["frames"] == 1 and same["indices"] == [5] and later["all"]["frames"] == 2
+    frame = RealImageSet(subject, 64, np.array([5]))
+    assert same["model"]["psnr"] == pytest.approx(
+        psnr(composite(render_frames(net, frame), frame.masks), composite(frame.images, frame.masks)), abs=1e-4)
+    seen = RealImageSet(subject, 64, np.array([4]))  # the last frame it saw, not frame 5 itself
+    assert same["baselines"]["last_frame"]["psnr"] == pytest.approx(
+        psnr(composite(seen.images, frame.masks), composite(frame.images, frame.masks)), abs=1e-4)
+    assert same["gain"]["psnr"]["gain"] == pytest.approx(same["model"]["psnr"] - same["gain"]["psnr"]["baseline"])
 
 
 @pytest.mark.slow

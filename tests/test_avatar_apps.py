@@ -181,6 +181,34 @@ def test_the_fit_table_puts_the_trained_frames_beside_the_test_frames_for_every_
     assert row["gap_ssim"] == pytest.approx(0.07) and row["trained_st_lpips"] == pytest.approx(0.1)
 
 
+def test_the_same_recording_table_scores_later_frames_of_the_training_recordings_beside_their_baselines():
+    """eval.json's `same_recording` (the last frames of the training clips, held out) over seeds, with its own
+    baselines and the held-out clips' scores beside it; a subject without such frames (synthetic: its test frames
+    are already its recording's last) has no row."""
+    from avatarlab.report.avatar_tables import same_recording_table
+
+    avatars = []
+    for seed, (later, unseen) in enumerate([(27.0, 22.0), (27.5, 23.0), (28.0, 24.0)]):
+        a = avatar("obama", "final", "beta6_from_alpha2", "a", unseen)
+        a["seed"] = seed
+        part = avatar("obama", "final", "beta6_from_alpha2", "a", later, best=25.0)["eval"]["all"]
+        part["frames"] = 20
+        part["baselines"]["nearest"] = dict(part["model"], psnr=25.0, st_lpips=0.04, identity_similarity=0.99)
+        part["model"] = dict(part["model"], st_lpips=0.05 + 0.01 * seed)
+        a["eval"]["same_recording"] = part
+        avatars.append(a)
+    table = same_recording_table(avatars + [avatar("talk", "final", "beta6_from_alpha2", "a", 30.0),
+                                            avatar("s", "base", "alpha1", "a", 20.0)], "beta6_from_alpha2")
+    assert [r["subject"] for r in table.rows] == ["obama"]
+    row = table.rows[0]
+    assert row["seeds"] == 3 and row["test_frames"] == 20 and row["best_baseline"] == "last_frame"
+    assert row["psnr"] == pytest.approx(27.5) and row["baseline_psnr"] == 25.0
+    assert row["gain"] == pytest.approx(2.5) and 0 < row["gain_ci95"] < 2.5
+    assert row["st_lpips"] == pytest.approx(0.06) and row["nearest_st_lpips"] == 0.04
+    assert row["nearest_identity"] == 0.99 and row["unseen_recordings_psnr"] == pytest.approx(23.0)
+    assert table.sentence().startswith("obama beats its best baseline (last_frame) by 2.5")
+
+
 def test_a_table_shows_eight_columns_rounded_to_its_noise_and_says_which_row_is_best():
     """What a reader sees: at most 8 columns (the others named, all in the CSV), a value with its CI rounded to the
     CI's first significant digit + 1, the best row marked, and one sentence on whether it beats its baseline beyond

@@ -363,7 +363,8 @@ def test_results_card(smoke_run, workdir, tmp_path):
     assert f"torch {torch.__version__}" in card and results_card.cpu()[0] in card
     assert "| pretrain_alpha | 2 |" in card and "wall time " in card  # the step-time table of that log
     for title in ("Pretrained head models", "Final-recipe avatars", "Final-recipe avatars on frames they trained on",
-                  "Frame interpolation", "Speech on real clips", "The dissertation's claims"):
+                  "Final-recipe avatars on later frames of the recordings they trained on", "Frame interpolation",
+                  "Speech on real clips", "The dissertation's claims"):
         assert f"### {title}" in card, title
     with open(smoke_run / "smoke" / "report" / "tables" / "final_avatars.csv") as f:
         finals = list(csv.DictReader(f))
@@ -380,7 +381,7 @@ def test_results_card(smoke_run, workdir, tmp_path):
     assert results_card.numbers_not_in("a made-up 31.4159 dB", card) == ["31.4159"]
     # the HTML report's landing page shows the same tables, rendered (not a download)
     landing = (smoke_run / "smoke" / "report" / "landing.html").read_text()
-    assert landing.count("<table>") == 9 and f"<td>{finals[0]['subject']}</td>" in landing
+    assert landing.count("<table>") == 10 and f"<td>{finals[0]['subject']}</td>" in landing
     report = tmp_path / "report.html"
     run_snakemake(workdir, "--report", str(report), "--config", "scale=smoke", "seeds=2", "threads_per_job=1")
     page = report.read_text()

@@ -8,7 +8,9 @@ matched), SSIM, ST-LPIPS, LPIPS (missing without the VGG backbone), and on all t
 face: dlib's detection rate, the 68-point NME against the frame's tracked landmarks (outer-eye
 normalised) and the identity similarity; also on the mouth-open subset (the widest fitted jaw openings). Beside
 them, the avatar alone on some of its own training frames (`trained`): how well it fits what it saw, so that a gap
-to the test frames reads as generalisation, not fitting.
+to the test frames reads as generalisation, not fitting. With held-out clips and `finetune.recording_test_frames`,
+the last frames of its training clips are scored apart, with their own baselines (`same_recording`): a later moment
+of a recording it trained on (the INSTA protocol), beside the recordings it never saw.
 Writes `eval.json` and `test_frames.png` (truth, model, best baseline) and logs into the avatar's MLflow run.
 `python -m avatarlab.avatar.evaluate evaluate.model=.../model.pt finetune.subject_dir=... evaluate.out=...`
 """
@@ -43,12 +45,21 @@ def to_uint8(images: torch.Tensor) -> np.ndarray:
     return (images.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
 
+def last_seen_before(seen: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """For each of `frames` (frame indices), the position in `seen` (frame indices) of the latest seen frame before
+    it, or of the latest of all where none comes before: a test clip's or last-frames test frame gets the last frame
+    the avatar saw, a same-recording test frame the last training frame of its own clip."""
+    order = np.argsort(seen, kind="stable")
+    before = np.searchsorted(seen[order], frames, side="left") - 1
+    return order[np.where(before >= 0, before, len(seen) - 1)]
+
+
 def baseline_predictions(train: RealImageSet, test: RealImageSet) -> dict[str, torch.Tensor]:
-    last = int(np.argmax(train.frame_index))
+    last = last_seen_before(np.asarray(train.frame_index), np.asarray(test.frame_index))
     pool = baselines.conditioning_blocks(train.params, train.R, train.t, BLOCKS)
     query = baselines.conditioning_blocks(test.params, test.R, test.t, BLOCKS)
     return {"mean_frame": baselines.mean_frame(train.images, train.masks, test.masks),
-            "last_frame": baselines.frames_at(train.images, train.masks, [last] * len(test), test.masks),
+            "last_frame": baselines.frames_at(train.images, train.masks, last, test.masks),
             "nearest": baselines.frames_at(train.images, train.masks, baselines.nearest_indices(pool, query),
                                            test.masks)}
 
@@ -85,6 +96,38 @@ def trained_frame_scores(net, subject_dir, train: np.ndarray, size: int, count: 
     return {"frames": int(len(chosen)), "indices": chosen.tolist(), "model": scores}
 
 
+def add_face_metrics(part: dict, predictions: dict, target, frames: RealImageSet, subject_dir, size: int) -> float:
+    """dlib's face measures of every prediction (the model's, each baseline's) added to a scored `part`, against the
+    frames' tracked landmarks; -> the share of true frames where dlib finds a face."""
+    points, found = SubjectDir(subject_dir).landmarks()
+    frame_size = SubjectDir(subject_dir).frames_meta()["size"]
+    truth = points[frames.frame_index] * (size / frame_size)
+    truth[~found[frames.frame_index]] = np.nan
+    target_u8, targets_seen = to_uint8(target), {}  # each truth frame's face and descriptor, found once
+    for name, images in predictions.items():
+        faces = face_metrics(to_uint8(images), target_u8, truth, targets_seen)
+        (part["model"] if name == "model" else part["baselines"][name]).update(faces)
+    return face_metrics(target_u8, target_u8, truth, targets_seen, identity=False)["face_detection_rate"]
+
+
+def same_recording_scores(net, subject_dir, split, seen: RealImageSet, size: int, perceptual: dict,
+                          faces: bool) -> dict | None:
+    """The avatar on its same-recording test frames (`split.recording`: the last frames of its training clips), beside
+    the trivial baselines from the frames it saw, scored as the test frames are; None without such frames."""
+    if len(split.recording) == 0:
+        return None
+    frames = RealImageSet(subject_dir, size, split.recording)
+    target = composite(frames.images, frames.masks)
+    predictions = {"model": composite(render_frames(net, frames), frames.masks),
+                   **baseline_predictions(seen, frames)}
+    part = scored(predictions, target, frames.masks, perceptual, torch.arange(len(frames)))
+    if faces:
+        add_face_metrics(part, predictions, target, frames, subject_dir, size)
+    part["gain"] = gains(part["model"], part["baselines"])
+    part["indices"] = split.recording.tolist()
+    return part
+
+
 def scored(predictions: dict, target, masks, perceptual, sel) -> dict:
     model = image_scores(predictions["model"][sel], target[sel], masks[sel], perceptual)
     base = {k: image_scores(p[sel], target[sel], masks[sel], perceptual) for k, p in predictions.items()
@@ -113,19 +156,12 @@ def evaluate_avatar(cfg, device) -> tuple[dict, torch.Tensor]:
     report = {"all": scored(predictions, target, test.masks, perceptual, every),
               "mouth_open": scored(predictions, target, test.masks, perceptual, mouth)}
     if ev.face_metrics:
-        points, found = SubjectDir(ft.subject_dir).landmarks()
-        frame_size = SubjectDir(ft.subject_dir).frames_meta()["size"]
-        truth = points[test.frame_index] * (size / frame_size)
-        truth[~found[test.frame_index]] = np.nan
-        target_u8, targets_seen = to_uint8(target), {}  # each truth frame's face and descriptor, found once
-        for name, images in predictions.items():
-            faces = face_metrics(to_uint8(images), target_u8, truth, targets_seen)
-            bucket = report["all"]["model"] if name == "model" else report["all"]["baselines"][name]
-            bucket.update(faces)
-        report["ground_truth_face_detection_rate"] = face_metrics(target_u8, target_u8, truth, targets_seen,
-                                                                  identity=False)["face_detection_rate"]
+        report["ground_truth_face_detection_rate"] = add_face_metrics(report["all"], predictions, target, test,
+                                                                      ft.subject_dir, size)
     for part in ("all", "mouth_open"):
         report[part]["gain"] = gains(report[part]["model"], report[part]["baselines"])
+    report["same_recording"] = same_recording_scores(net, ft.subject_dir, split, train, size, perceptual,
+                                                     bool(ev.face_metrics))
     report["trained"] = trained_frame_scores(net, ft.subject_dir, split.train, size, int(ev.trained_frames),
                                              perceptual)
     report["curve"] = quality_curve(Path(ev.model), content, report["all"]["model"], test, target, device,
@@ -166,7 +202,10 @@ def main(cfg, device) -> None:
         [(label, rows[i * height:(i + 1) * height]) for i, label in enumerate(labels)],
         [f"test frame {frames[i]}" for i in shown]))
     write_json(out, report)
-    for part, prefix in (("all", "test_all"), ("mouth_open", "test_mouth_open")):
+    for part, prefix in (("all", "test_all"), ("mouth_open", "test_mouth_open"), ("same_recording",
+                                                                                      "test_same_recording")):
+        if report.get(part) is None:
+            continue
         log_to_run(cfg, report["run_id"], report[part]["model"], report[part]["baselines"], report[part]["gain"],
                    prefix, artifact=out.with_name("test_frames.png") if part == "all" else None,
                    extra=run_extras(report, part))
@@ -179,6 +218,11 @@ def main(cfg, device) -> None:
         t = report["trained"]["model"]
         log.info("the same avatar on %d of its training frames: PSNR %.2f dB, SSIM %.3f (test: %.2f dB, %.3f)",
                  report["trained"]["frames"], t["psnr"], t["ssim"], a["psnr"], a["ssim"])
+    if report["same_recording"] is not None:
+        r, rg = report["same_recording"]["model"], report["same_recording"]["gain"]["psnr"]
+        log.info("on %d later frames of its training recordings: PSNR %.2f dB vs best baseline %s %.2f dB (gain "
+                 "%+.2f), SSIM %.3f", report["same_recording"]["frames"], r["psnr"], rg["best_baseline"],
+                 rg["baseline"], rg["gain"], r["ssim"])
 
 
 if __name__ == "__main__":

@@ -8,6 +8,10 @@
   iterations): the frames just before the test frames, or the clip(s) just before the test clip(s), are held out of
   training too. Fine-tuning scores its snapshots on them and keeps the best (avatar/finetune.py), so the stop is chosen
   on frames that extrapolate as the test frames do, and the test frames stay unseen.
+- Same-recording test frames (`recording_test_frames` > 0, held-out clips only; not in the dissertation): the last
+  frames of every training clip are held out too and scored apart (evaluation's `same_recording`): frames of a
+  recording the avatar trained on, later in it, as in the INSTA protocol, beside the held-out clips' new recordings.
+  Each training clip keeps at least its first frame.
 - Interpolation experiment (section 4.3): variant b keeps every second training frame (the even ones), c adds back
   the dropped ones re-created by the frame interpolator.
 Too few frames for the asked split stops with a line naming the subject's frames file.
@@ -28,6 +32,8 @@ class Split:
     test: np.ndarray  # frame indices it is scored on
     protocol: str  # "last_frames" or "held_out_clips"
     validation: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # frames held out to choose the stop
+    recording: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # the last frames of the training
+    #                                                                           clips, scored apart (same recording)
 
     @property
     def seen(self) -> np.ndarray:
@@ -36,10 +42,35 @@ class Split:
 
 
 def held_out(clips: np.ndarray, test_frames: int, test_clips: int = 0, validation_frames: int = 0,
-             validation_clips: int = 0, source: str = "the subject") -> tuple[np.ndarray, np.ndarray, str]:
+             validation_clips: int = 0, source: str = "the subject",
+             recording_test_frames: int = 0) -> tuple[np.ndarray, np.ndarray, str]:
     """Which frames an avatar is tested and validated on, from the frame count and clips alone (so preprocessing
     can keep them out of the identity fit before anything is fitted). clips (N,) clip index of each frame ->
-    (in_test (N,) bool, in_validation (N,) bool, protocol)."""
+    (in_test (N,) bool, in_validation (N,) bool, protocol); in_test includes the same-recording test frames
+    (`recording_tails`)."""
+    in_test, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames,
+                                                 validation_clips, source)
+    tails = recording_tails(clips, in_test | in_validation, recording_test_frames if test_clips > 0 else 0)
+    return in_test | tails, in_validation, protocol
+
+
+def recording_tails(clips: np.ndarray, excluded: np.ndarray, count: int) -> np.ndarray:
+    """(N,) bool: the last `count` frames of every clip none of whose frames is `excluded` (the training clips of the
+    held-out-clips protocol), each clip keeping at least its first frame. None when the subject has one clip only
+    or nothing is excluded."""
+    clips = np.asarray(clips)
+    tails = np.zeros(len(clips), bool)
+    if count <= 0 or not excluded.any() or len(np.unique(clips)) < 2:
+        return tails
+    for clip in dict.fromkeys(clips.tolist()):
+        members = np.nonzero(clips == clip)[0]
+        if excluded[members].any():
+            continue
+        tails[members[max(1, len(members) - count):]] = True
+    return tails
+
+
+def _held_out(clips, test_frames, test_clips, validation_frames, validation_clips, source):
     n = len(clips)
     idx = np.arange(n)
     if test_clips > 0:
@@ -63,17 +94,20 @@ def held_out(clips: np.ndarray, test_frames: int, test_clips: int = 0, validatio
 
 def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_clips: int = 0, variant: str = "a",
                   interpolated=(), source: str = "the subject", validation_frames: int = 0,
-                  validation_clips: int = 0) -> Split:
+                  validation_clips: int = 0, recording_test_frames: int = 0) -> Split:
     """fitted (N,) bool, clips (N,) clip index of each frame. validation_frames applies to the last-frames
-    protocol, validation_clips to the held-out-clips one."""
+    protocol, validation_clips and recording_test_frames to the held-out-clips one."""
     if variant not in ("a", "b", "c"):
         raise InputError(f"finetune.frames_variant={variant!r}: expected a, b or c")
     n = len(fitted)
     idx = np.arange(n)
-    in_test, in_validation, protocol = held_out(clips, test_frames, test_clips, validation_frames, validation_clips,
-                                                source)
+    in_test, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames, validation_clips,
+                                                 source)
+    in_recording = recording_tails(clips, in_test | in_validation, recording_test_frames if test_clips > 0 else 0)
     test = idx[in_test & fitted]
     validation = idx[in_validation & fitted]
+    recording = idx[in_recording & fitted]
+    in_test = in_test | in_recording
     in_train = ~in_test & ~in_validation & fitted
     if variant in ("b", "c"):
         kept = in_train & (idx % 2 == 0)
@@ -89,7 +123,7 @@ def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_
     if (validation_clips if test_clips > 0 else validation_frames) > 0 and len(validation) == 0:
         raise InputError(f"{source}: no fitted frame in the validation split ({int(fitted.sum())} of {n} frames "
                          "fitted)")
-    return Split(train=train, test=test, protocol=protocol, validation=validation)
+    return Split(train=train, test=test, protocol=protocol, validation=validation, recording=recording)
 
 
 def mouth_open_subset(jaw: np.ndarray, count: int) -> np.ndarray:
@@ -105,4 +139,5 @@ def avatar_split(ft) -> Split:
     return subject_split(fitted, subject.frame_clips(), int(ft.test_frames), int(ft.test_clips),
                          str(ft.frames_variant), made, source=str(subject.frames_json),
                          validation_frames=int(ft.validation_frames),
-                         validation_clips=int(ft.validation_clips))
+                         validation_clips=int(ft.validation_clips),
+                         recording_test_frames=int(ft.recording_test_frames))

@@ -4,7 +4,8 @@ Each predicts the test images from training data alone and is composited into th
 as the model's render is, then scored by the same metrics on the same frames:
 - `mean_colour`: one colour inside the mask, the mean colour of the training samples' head regions;
 - `mean_frame`: the pixelwise mean of the training images;
-- `last_frame`: the last training frame (a video subject: the frame just before the test clip);
+- `last_frame`: the last training frame before the test frame (a video subject: the frame just before the test clip;
+  a same-recording test frame: its clip's last training frame);
 - `nearest`: the training sample whose conditioning is nearest (each block - e.g. shape, expression, jaw, neck,
   camera - standardised over the training set and weighted equally).
 """

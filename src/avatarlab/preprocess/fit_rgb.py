@@ -211,7 +211,7 @@ def identity_frames(fit, clips: np.ndarray | None, n: int, source: str = "the su
     h = fit.held_out
     in_test, in_validation, _ = held_out(np.zeros(n, int) if clips is None else np.asarray(clips),
                                          int(h.test_frames), int(h.test_clips), int(h.validation_frames),
-                                         int(h.validation_clips), source)
+                                         int(h.validation_clips), source, int(h.recording_test_frames))
     return ~(in_test | in_validation)
 
 

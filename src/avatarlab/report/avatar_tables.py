@@ -180,6 +180,39 @@ def fit_table(avatars: list[dict], final: str) -> Table:
     return table
 
 
+def same_recording_table(avatars: list[dict], final: str) -> Table:
+    """The final avatars on the last frames of the recordings they trained on (eval.json's `same_recording`, subjects
+    with held-out clips and `finetune.recording_test_frames`): the INSTA protocol's kind of test frame, beside the
+    held-out clips' new recordings, each beside its own baselines."""
+    table = Table("final_avatar_same_recording", "Final-recipe avatars on later frames of the recordings they trained "
+                  "on, beside their unseen recordings (mean over seeds, 95 % CI)",
+                  ["subject", "seeds", "test_frames", "psnr", "best_baseline", "baseline_psnr", "gain", "gain_ci95",
+                   "ssim", "st_lpips", "nearest_st_lpips", "landmark_nme", "identity_similarity",
+                   "nearest_identity", "unseen_recordings_psnr", "unseen_recordings_ssim"],
+                  "test_frames: the last frames of every training clip, held out of training and of the identity fit "
+                  "(finetune.recording_test_frames), so a later moment of a recording the avatar trained on, as in "
+                  "the dissertation's protocol (the last frames of one video); scored as the test frames are, beside "
+                  "the baselines from the frames the avatar saw. unseen_recordings_*: the held-out clips' scores "
+                  "(the tables above). A subject tested on its own last frames (synthetic) has no row.",
+                  shown=["subject", "test_frames", "psnr", "baseline_psnr", "gain", "ssim", "st_lpips",
+                         "nearest_st_lpips"],
+                  headline=Headline("psnr", ("subject",), each=True))
+    for subject, runs, models, _ in final_seeds(avatars, final):
+        if any(a["eval"].get("same_recording") is None for a in runs):
+            continue
+        row = seeded_row(runs, "same_recording")
+        bases = runs[0]["eval"]["same_recording"]["baselines"]
+        table.add(subject=subject, seeds=len(runs), test_frames=row["test_frames"], psnr=row["psnr"],
+                  best_baseline=row["best_baseline"], baseline_psnr=row["baseline_psnr"], gain=row["gain"],
+                  gain_ci95=row["gain_ci95"], ssim=row["ssim"], st_lpips=row["st_lpips"],
+                  nearest_st_lpips=(bases.get("nearest") or {}).get("st_lpips"), landmark_nme=row["landmark_nme"],
+                  identity_similarity=row["identity_similarity"],
+                  nearest_identity=(bases.get("nearest") or {}).get("identity_similarity"),
+                  unseen_recordings_psnr=mean_ci(m["psnr"] for m in models)[0],
+                  unseen_recordings_ssim=mean_ci(m["ssim"] for m in models)[0])
+    return table
+
+
 def alpha_table(avatars: list[dict]) -> Table:
     table = Table("alpha1_vs_alpha2", "Avatars fine-tuned (base recipe) from alpha1 vs alpha2, all test frames and "
                   "the mouth-open subset (mean over seeds, 95 % CI)", AVATAR_COLUMNS + SEEDED_COLUMNS,

@@ -28,6 +28,7 @@ from avatarlab.report.avatar_tables import (
     final_avatar_table,
     fit_table,
     interp_table,
+    same_recording_table,
     sharpness_table,
     stage2_table,
 )
@@ -90,7 +91,7 @@ def write_report(tree: ResultsTree, out: Path, final: str, scale: str) -> dict:
     finals, final_baselines = final_avatar_table(avatars, final)
     tables = [preprocessing_table(tree), pretraining_table(tree), controls_table(tree),
               renderer_table(tree), finals, final_baselines, sharpness_table(avatars, final),
-              face_table(avatars, final), fit_table(avatars, final),
+              face_table(avatars, final), fit_table(avatars, final), same_recording_table(avatars, final),
               alpha_table(avatars), alpha_paired_table(avatars), beta_table(avatars),
               stage2_table(avatars), interp_table(avatars, final),
               comparison_table(avatars, final, scale), claims_table(tree, avatars, final, scale),

@@ -22,7 +22,13 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
-from avatarlab.report.avatar_tables import face_table, final_avatar_table, fit_table, sharpness_table
+from avatarlab.report.avatar_tables import (
+    face_table,
+    final_avatar_table,
+    fit_table,
+    same_recording_table,
+    sharpness_table,
+)
 from avatarlab.report.claims import RULE, claims_table
 from avatarlab.report.model_tables import preprocessing_table, pretraining_table
 from avatarlab.report.runs import load_avatars
@@ -145,6 +151,7 @@ def headline_tables(results: ResultsTree, final: str, scale: str) -> list[Table]
         sharpness_table(avatars, final),
         face_table(avatars, final),
         fit_table(avatars, final),
+        same_recording_table(avatars, final),
         cut(preprocessing, ["subject", "interp_xvfi_psnr", "interp_farneback_psnr", "interp_crossfade_psnr",
                             "interp_gain_vs_farneback_db", "interp_gain_vs_crossfade_db"],
             "Frame interpolation on held-out frames (PSNR, dB), beside Farneback flow and the cross-fade",

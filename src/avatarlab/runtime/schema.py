@@ -128,7 +128,8 @@ class FitRGB:
     jaw_limits_deg: list[float] = MISSING
     weights: dict = MISSING
     video_expression_reg: float = at_least(0)
-    held_out: dict = MISSING   # test_frames, test_clips, validation_frames, validation_clips (the avatar's split)
+    held_out: dict = MISSING   # test_frames, test_clips, validation_frames, validation_clips, recording_test_frames
+    #                            (the avatar's split)
 
 
 @dataclass
@@ -263,6 +264,7 @@ class Finetune:
     test_clips: int = at_least(0)
     validation_frames: int = at_least(0)
     validation_clips: int = at_least(0)
+    recording_test_frames: int = at_least(0)
     frames_variant: str = one_of("a", "b", "c")
     interpolated: str = MISSING
     checkpoint_every: int = at_least(1)
