@@ -113,9 +113,10 @@ def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
     from avatarlab.preprocess.fit_rgb import fit_video, identity_frames
     from avatarlab.preprocess.synthetic_subject import render_subject
 
-    clip_overrides = ["fit_rgb.held_out.test_clips=1", "fit_rgb.held_out.validation_clips=1"] if clips else \
-        ["fit_rgb.held_out.test_frames=4", "fit_rgb.held_out.validation_frames=2"]
-    cfg = compose_config(["scale=smoke", "scale.subject_frames=16", "fit_rgb.lighting_per_clip=false", "scale.fit_keyframe_iterations=30",
+    clip_overrides = ["fit_rgb.held_out.test_clips=1", "fit_rgb.held_out.validation_clips=1",
+                      "fit_rgb.lighting_per_clip=true"] if clips else \
+        ["fit_rgb.held_out.test_frames=4", "fit_rgb.held_out.validation_frames=2", "fit_rgb.lighting_per_clip=false"]
+    cfg = compose_config(["scale=smoke", "scale.subject_frames=16", "scale.fit_keyframe_iterations=30",
                           "scale.fit_frame_iterations=15",
                           *clip_overrides])
     truth = render_subject(cfg)
@@ -140,8 +141,14 @@ def test_noise_in_the_held_out_frames_leaves_the_identity_fit_unchanged(clips):
     points[~seen] += rng.normal(0, 3, points[~seen].shape)
     mask[~seen] = rng.random(mask[~seen].shape) > 0.5
     (shared, result), (noisy_shared, noisy_result) = fit(frames, landmarks, masks), fit(video, points, mask)
-    for key in ("shape", "texture", "lighting", "focal"):
+    for key in ("shape", "texture", "focal"):
         assert torch.equal(shared[key], noisy_shared[key]), key
+    # the lighting: shared, or with held-out clips one per clip, each training clip's from its open frames alone
+    lit, noisy_lit = shared["lighting"], noisy_shared["lighting"]
+    assert torch.equal(lit[seen] if lit.shape[0] == len(frames) else lit,
+                       noisy_lit[seen] if noisy_lit.shape[0] == len(frames) else noisy_lit)
+    if clips is not None:
+        assert lit.shape[0] == len(frames) and not torch.equal(lit[~seen], noisy_lit[~seen]), "per-clip lighting"
     for key in ("expression", "pose", "rot", "trans"):
         assert torch.equal(result[key][seen], noisy_result[key][seen]), key
     assert not torch.equal(result["expression"][~seen], noisy_result["expression"][~seen])

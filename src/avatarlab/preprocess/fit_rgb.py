@@ -182,14 +182,20 @@ def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs, device=N
 
 
 def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.ndarray, images, lm_t, mask_t,
-                      clips: np.ndarray, fit) -> tuple[torch.Tensor, list[float]]:
+                      clips: np.ndarray, fit, open_frames: np.ndarray | None = None) -> tuple[torch.Tensor, list[float]]:
     """One SH lighting per clip: from the shared one, refitted (photometric + landmark terms, lighting and
     extrinsics free, shape, texture, expression and pose fixed) on up to `fit.lighting_frames` fitted frames of each
-    clip, with the step `fit.lighting_lr`. -> lighting per frame (N, 9, 3), the clips' final losses."""
+    clip, with the step `fit.lighting_lr`. `open_frames` (N,) bool: the frames outside the avatar's test and
+    validation split; a clip that has some is lit from them alone (a training clip's same-recording test frames
+    never reach its training frames' lighting), a held-out clip from its own frames. -> lighting per frame
+    (N, 9, 3), the clips' final losses."""
     lighting = shared["lighting"].expand(len(clips), -1, -1).clone()
     losses = []
+    open_frames = np.ones(len(clips), bool) if open_frames is None else open_frames
     for clip in np.unique(clips):
         members = np.nonzero((clips == clip) & fitted)[0]
+        if open_frames[members].any():
+            members = members[open_frames[members]]
         if len(members) == 0:
             continue
         ids = members[np.unique(np.linspace(0, len(members) - 1, min(int(fit.lighting_frames), len(members)))
@@ -289,7 +295,8 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
         fitted[ids] = True
         hist_rest.append(hist[-1])
     if clips is not None and len(np.unique(clips)) > 1 and fit.lighting_per_clip:
-        shared["lighting"], losses = fit_clip_lighting(fitter, shared, result, fitted, images, lm_t, mask_t, clips, fit)
+        shared["lighting"], losses = fit_clip_lighting(fitter, shared, result, fitted, images, lm_t, mask_t, clips, fit,
+                                                       identity_frames(fit, clips, n, source))
         log.info("one lighting per clip (%d clips), final losses %s", len(losses), np.round(losses, 4).tolist())
     seconds = time.perf_counter() - start
     return model, fitter, shared, result, fitted, key, seconds, hist_key
