@@ -48,19 +48,17 @@ def held_out(clips: np.ndarray, test_frames: int, test_clips: int = 0, validatio
     can keep them out of the identity fit before anything is fitted). clips (N,) clip index of each frame ->
     (in_test (N,) bool, in_validation (N,) bool, protocol); in_test includes the same-recording test frames
     (`recording_tails`)."""
-    in_test, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames,
-                                                 validation_clips, source)
-    tails = recording_tails(clips, in_test | in_validation, recording_test_frames if test_clips > 0 else 0)
-    return in_test | tails, in_validation, protocol
+    in_test, in_recording, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames,
+                                                               validation_clips, source, recording_test_frames)
+    return in_test | in_recording, in_validation, protocol
 
 
 def recording_tails(clips: np.ndarray, excluded: np.ndarray, count: int) -> np.ndarray:
     """(N,) bool: the last `count` frames of every clip none of whose frames is `excluded` (the training clips of the
-    held-out-clips protocol), each clip keeping at least its first frame. None when the subject has one clip only
-    or nothing is excluded."""
+    held-out-clips protocol), each clip keeping at least its first frame."""
     clips = np.asarray(clips)
     tails = np.zeros(len(clips), bool)
-    if count <= 0 or not excluded.any() or len(np.unique(clips)) < 2:
+    if count <= 0:
         return tails
     for clip in dict.fromkeys(clips.tolist()):
         members = np.nonzero(clips == clip)[0]
@@ -70,7 +68,9 @@ def recording_tails(clips: np.ndarray, excluded: np.ndarray, count: int) -> np.n
     return tails
 
 
-def _held_out(clips, test_frames, test_clips, validation_frames, validation_clips, source):
+def _held_out(clips, test_frames, test_clips, validation_frames, validation_clips, source, recording_test_frames):
+    """held_out's parts: (in_test, in_recording, in_validation, protocol); same-recording frames only with held-out
+    clips (the last-frames protocol's test frames already are its recording's last)."""
     n = len(clips)
     idx = np.arange(n)
     if test_clips > 0:
@@ -81,7 +81,8 @@ def _held_out(clips, test_frames, test_clips, validation_frames, validation_clip
                              + " and still train on another (finetune.test_clips, finetune.validation_clips)")
         in_test = np.isin(clips, order[-test_clips:])
         in_validation = np.isin(clips, order[len(order) - test_clips - validation_clips:len(order) - test_clips])
-        return in_test, in_validation, "held_out_clips"
+        return (in_test, recording_tails(clips, in_test | in_validation, recording_test_frames), in_validation,
+                "held_out_clips")
     if n < 2 * test_frames + validation_frames:
         raise InputError(f"{source}: {n} frames are too few for {test_frames} test frames"
                          + (f", {validation_frames} validation frames" if validation_frames else "")
@@ -89,7 +90,7 @@ def _held_out(clips, test_frames, test_clips, validation_frames, validation_clip
                          f"{test_frames}, finetune.validation_frames={validation_frames})")
     in_test = idx >= n - test_frames
     in_validation = (idx >= n - test_frames - validation_frames) & ~in_test
-    return in_test, in_validation, "last_frames"
+    return in_test, np.zeros(n, bool), in_validation, "last_frames"
 
 
 def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_clips: int = 0, variant: str = "a",
@@ -101,9 +102,8 @@ def subject_split(fitted: np.ndarray, clips: np.ndarray, test_frames: int, test_
         raise InputError(f"finetune.frames_variant={variant!r}: expected a, b or c")
     n = len(fitted)
     idx = np.arange(n)
-    in_test, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames, validation_clips,
-                                                 source)
-    in_recording = recording_tails(clips, in_test | in_validation, recording_test_frames if test_clips > 0 else 0)
+    in_test, in_recording, in_validation, protocol = _held_out(clips, test_frames, test_clips, validation_frames,
+                                                               validation_clips, source, recording_test_frames)
     test = idx[in_test & fitted]
     validation = idx[in_validation & fitted]
     recording = idx[in_recording & fitted]

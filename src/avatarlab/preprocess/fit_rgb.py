@@ -182,7 +182,8 @@ def initial_state(model: HeadModel, n: int, focal: float, rvecs, tvecs, device=N
 
 
 def fit_clip_lighting(fitter: RGBFitter, shared: dict, result: dict, fitted: np.ndarray, images, lm_t, mask_t,
-                      clips: np.ndarray, fit, open_frames: np.ndarray | None = None) -> tuple[torch.Tensor, list[float]]:
+                      clips: np.ndarray, fit,
+                      open_frames: np.ndarray | None = None) -> tuple[torch.Tensor, list[float]]:
     """One SH lighting per clip: from the shared one, refitted (photometric + landmark terms, lighting and
     extrinsics free, shape, texture, expression and pose fixed) on up to `fit.lighting_frames` fitted frames of each
     clip, with the step `fit.lighting_lr`. `open_frames` (N,) bool: the frames outside the avatar's test and
@@ -242,7 +243,9 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
         raise ValueError("no frame has landmarks: nothing to fit")
     rvecs, tvecs = pnp_extrinsics(model, landmarks[idx], K0)
     yaw = yaw_of(rvecs)
-    allowed = identity_frames(fit, clips, len(frames), source)[idx] if fit.mode == "video" else np.ones(len(idx), bool)
+    video = fit.mode == "video"
+    open_frames = identity_frames(fit, clips, len(frames), source) if video else np.ones(len(frames), bool)
+    allowed = open_frames[idx]
     if not allowed.any():
         raise ValueError(f"{source}: no frame with landmarks outside the test and validation split to fit the "
                          "identity on (fit_rgb.held_out)")
@@ -296,7 +299,7 @@ def fit_video(cfg: DictConfig, frames: np.ndarray, landmarks: np.ndarray, found:
         hist_rest.append(hist[-1])
     if clips is not None and len(np.unique(clips)) > 1 and fit.lighting_per_clip:
         shared["lighting"], losses = fit_clip_lighting(fitter, shared, result, fitted, images, lm_t, mask_t, clips, fit,
-                                                       identity_frames(fit, clips, n, source))
+                                                       open_frames)
         log.info("one lighting per clip (%d clips), final losses %s", len(losses), np.round(losses, 4).tolist())
     seconds = time.perf_counter() - start
     return model, fitter, shared, result, fitted, key, seconds, hist_key

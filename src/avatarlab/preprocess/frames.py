@@ -107,9 +107,9 @@ def sampled_frames(path: Path, target_fps: float | None) -> int:
 def read_video(path: Path, target_fps: float | None, keep: int | None, max_missing: float = 0.1,
                count: int | None = None):
     """The frames of a video (every `fps / target_fps`-th), at most `keep` of them, spread evenly over the whole
-    video (`spread`; `count`: `sampled_frames` of it when the caller has it already). A file that decodes fewer frames than its header declares, by more than the share
-    `max_missing` (a truncated download, a broken encode), stops with the file and the counts named, rather than
-    becoming a shorter subject unnoticed."""
+    video (`spread`; `count`: `sampled_frames` of it when the caller has it already). A file that decodes fewer
+    frames than its header declares, by more than the share `max_missing` (a truncated download, a broken encode),
+    stops with the file and the counts named, rather than becoming a shorter subject unnoticed."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise InputError(f"{path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
